@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Writes a self-signed certificate and key for local runs of compose.yaml:
+#   deploy/tls/cert.pem, deploy/tls/key.pem  (CN/SAN: localhost, 127.0.0.1, ::1)
+# Clients must trust deploy/tls/cert.pem (or run in their insecure/dev mode).
+# Never use these in production.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+out="${1:-$here/tls}"
+mkdir -p "$out"
+openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes \
+  -days 30 -subj "/CN=localhost" \
+  -addext "subjectAltName=DNS:localhost,DNS:planet-server,IP:127.0.0.1,IP:::1" \
+  -keyout "$out/key.pem" -out "$out/cert.pem" 2>/dev/null
+# The container runs as uid 10001: the key must be readable by it.
+chmod 0644 "$out/cert.pem"
+chmod 0644 "$out/key.pem"
+echo "wrote $out/cert.pem and $out/key.pem"
