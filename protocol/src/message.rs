@@ -1,0 +1,361 @@
+//! The protocol messages and their field rules.
+//!
+//! Each message is a plain struct; [`Message`] is the sum of all of them.
+//! Their body encoding (see the private `codec` module) follows field declaration order,
+//! so **field order is part of the wire format**: do not reorder fields.
+//!
+//! Every message is checked with [`Message::validate`] both before it is
+//! encoded and after it is decoded, so limits hold in both directions.
+
+use std::fmt;
+
+use bincode::{Decode, Encode};
+
+use crate::error::ProtocolError;
+use crate::error_code::ErrorCode;
+use crate::frame::MessageType;
+
+/// Maximum length in bytes of the `tenant`, `token` and `database` strings.
+pub const MAX_NAME_LEN: usize = 256;
+
+/// Maximum length in bytes of a human-readable error message.
+/// [`ErrorMsg::new`] truncates longer messages (at a char boundary).
+pub const MAX_ERROR_MESSAGE_LEN: usize = 1024;
+
+/// Maximum length of the opaque database header carried by [`Welcome`].
+pub const MAX_HEADER_LEN: usize = 8 * 1024 * 1024;
+
+/// Client -> server, first message on the control stream.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct Hello {
+    /// Protocol version the client speaks ([`crate::PROTOCOL_VERSION`]).
+    pub version: u16,
+    /// Tenant (account) name.
+    pub tenant: String,
+    /// Secret token that authenticates the tenant.
+    pub token: String,
+    /// Name of the database the client wants to stream.
+    pub database: String,
+}
+
+impl Hello {
+    /// A hello for the current [`crate::PROTOCOL_VERSION`].
+    pub fn new(
+        tenant: impl Into<String>,
+        token: impl Into<String>,
+        database: impl Into<String>,
+    ) -> Self {
+        Hello {
+            version: crate::PROTOCOL_VERSION,
+            tenant: tenant.into(),
+            token: token.into(),
+            database: database.into(),
+        }
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), ProtocolError> {
+        check_len("hello.tenant", self.tenant.len(), MAX_NAME_LEN)?;
+        check_len("hello.token", self.token.len(), MAX_NAME_LEN)?;
+        check_len("hello.database", self.database.len(), MAX_NAME_LEN)
+    }
+}
+
+/// Per-connection limits announced by the server in [`Welcome`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct Limits {
+    /// Maximum number of requests (request streams) in flight at once.
+    pub max_in_flight: u32,
+    /// Largest `size` a [`LodRequest`] may ask for.
+    pub max_record_size: u32,
+    /// Bandwidth cap for this connection in bytes per second; 0 = unlimited.
+    pub max_bytes_per_second: u64,
+    /// The server closes the connection after this long without traffic.
+    pub idle_timeout_ms: u32,
+}
+
+impl Default for Limits {
+    /// 64 requests in flight, 16 MiB records, no bandwidth cap, 30 s idle timeout.
+    fn default() -> Self {
+        Limits {
+            max_in_flight: 64,
+            max_record_size: 16 * 1024 * 1024,
+            max_bytes_per_second: 0,
+            idle_timeout_ms: 30_000,
+        }
+    }
+}
+
+/// Server -> client, accepted handshake on the control stream.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct Welcome {
+    /// Protocol version the server speaks (equal to the client's).
+    pub version: u16,
+    /// Name of the database being served (may be the server's canonical name).
+    pub database: String,
+    /// Size in bytes of the database file: requests must lie within it.
+    pub file_size: u64,
+    /// The database header bytes, opaque to this crate (see `planet-core`).
+    pub header: Vec<u8>,
+    /// Limits that apply to this connection.
+    pub limits: Limits,
+}
+
+impl Welcome {
+    pub(crate) fn validate(&self) -> Result<(), ProtocolError> {
+        check_len("welcome.database", self.database.len(), MAX_NAME_LEN)?;
+        check_len("welcome.header", self.header.len(), MAX_HEADER_LEN)
+    }
+}
+
+/// Client -> server, alone on its own bidirectional stream: "send me the
+/// `size` bytes at `offset` of the database file".
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct LodRequest {
+    /// Client-chosen id, unique among the connection's in-flight requests.
+    pub id: u64,
+    /// Byte offset of the record in the database file.
+    pub offset: u64,
+    /// Length of the record in bytes.
+    pub size: u32,
+}
+
+/// Outcome of a [`LodRequest`].
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
+pub enum Status {
+    /// Success: the head is followed by exactly `body_len` raw record bytes.
+    Ok,
+    /// Failure: no body follows (`body_len` is 0).
+    Error(ErrorMsg),
+}
+
+/// Server -> client, first thing on a request stream's response side.
+///
+/// On [`Status::Ok`] it is followed by exactly `body_len` raw bytes
+/// (`body_len` == the request's `size`), then the stream is finished.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct ResponseHead {
+    /// The request's id.
+    pub id: u64,
+    /// Success, or why the request failed.
+    pub status: Status,
+    /// Number of raw body bytes after this frame; 0 unless `status` is `Ok`.
+    pub body_len: u32,
+}
+
+impl ResponseHead {
+    /// A success head announcing `body_len` body bytes.
+    pub fn ok(id: u64, body_len: u32) -> Self {
+        ResponseHead {
+            id,
+            status: Status::Ok,
+            body_len,
+        }
+    }
+
+    /// A failure head (no body follows). The message is truncated to
+    /// [`MAX_ERROR_MESSAGE_LEN`] if needed.
+    pub fn error(id: u64, error: ErrorMsg) -> Self {
+        ResponseHead {
+            id,
+            status: Status::Error(ErrorMsg::new(error.code, error.message)),
+            body_len: 0,
+        }
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), ProtocolError> {
+        match &self.status {
+            Status::Ok => Ok(()),
+            Status::Error(e) => {
+                e.validate()?;
+                if self.body_len != 0 {
+                    return Err(ProtocolError::InvalidField {
+                        field: "response_head.body_len",
+                        reason: format!("must be 0 on error, got {}", self.body_len),
+                    });
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// Client -> server on the control stream: advisory cancellation of request
+/// `id`. The primary mechanism is stopping the request stream
+/// (`recv.stop(STREAM_CANCELLED)`); this message is optional.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct Cancel {
+    /// Id of the request to cancel.
+    pub id: u64,
+}
+
+/// An error report: numeric code plus human-readable text.
+///
+/// Sent on the control stream (handshake rejection, fatal protocol errors)
+/// and inside [`Status::Error`] for per-request failures.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct ErrorMsg {
+    /// Machine-readable code.
+    pub code: ErrorCode,
+    /// Human-readable explanation (at most [`MAX_ERROR_MESSAGE_LEN`] bytes).
+    pub message: String,
+}
+
+impl ErrorMsg {
+    /// Builds an error message, truncating `message` to
+    /// [`MAX_ERROR_MESSAGE_LEN`] bytes at a char boundary.
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+        let mut message = message.into();
+        if message.len() > MAX_ERROR_MESSAGE_LEN {
+            let mut cut = MAX_ERROR_MESSAGE_LEN;
+            while !message.is_char_boundary(cut) {
+                cut -= 1;
+            }
+            message.truncate(cut);
+        }
+        ErrorMsg { code, message }
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), ProtocolError> {
+        check_len("error.message", self.message.len(), MAX_ERROR_MESSAGE_LEN)
+    }
+}
+
+impl fmt::Display for ErrorMsg {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{} ({}): {}",
+            self.code,
+            self.code.as_u16(),
+            self.message
+        )
+    }
+}
+
+impl std::error::Error for ErrorMsg {}
+
+impl From<ProtocolError> for ErrorMsg {
+    fn from(e: ProtocolError) -> Self {
+        e.to_error_msg()
+    }
+}
+
+/// Either side on the control stream: graceful shutdown notice. The sender
+/// will close the connection once in-flight work is done.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct Goodbye {
+    /// Why (usually [`ErrorCode::ShuttingDown`]).
+    pub reason: ErrorCode,
+}
+
+/// Any protocol message.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub enum Message {
+    /// See [`Hello`].
+    Hello(Hello),
+    /// See [`Welcome`].
+    Welcome(Welcome),
+    /// See [`ErrorMsg`].
+    Error(ErrorMsg),
+    /// See [`Goodbye`].
+    Goodbye(Goodbye),
+    /// See [`Cancel`].
+    Cancel(Cancel),
+    /// See [`LodRequest`].
+    LodRequest(LodRequest),
+    /// See [`ResponseHead`].
+    ResponseHead(ResponseHead),
+}
+
+impl Message {
+    /// The frame type byte for this message.
+    pub fn msg_type(&self) -> MessageType {
+        match self {
+            Message::Hello(_) => MessageType::Hello,
+            Message::Welcome(_) => MessageType::Welcome,
+            Message::Error(_) => MessageType::Error,
+            Message::Goodbye(_) => MessageType::Goodbye,
+            Message::Cancel(_) => MessageType::Cancel,
+            Message::LodRequest(_) => MessageType::LodRequest,
+            Message::ResponseHead(_) => MessageType::ResponseHead,
+        }
+    }
+
+    /// Checks field limits and consistency rules.
+    pub fn validate(&self) -> Result<(), ProtocolError> {
+        match self {
+            Message::Hello(m) => m.check(),
+            Message::Welcome(m) => m.check(),
+            Message::Error(m) => m.check(),
+            Message::Goodbye(m) => m.check(),
+            Message::Cancel(m) => m.check(),
+            Message::LodRequest(m) => m.check(),
+            Message::ResponseHead(m) => m.check(),
+        }
+    }
+
+    /// Encodes this message as one complete frame.
+    pub fn encode_frame(&self) -> Result<Vec<u8>, ProtocolError> {
+        let mut out = Vec::new();
+        crate::frame::encode_frame_into(self, &mut out)?;
+        Ok(out)
+    }
+}
+
+/// A struct that is the body of one frame type.
+pub(crate) trait WireBody: Encode + Decode<()> + Into<Message> {
+    /// The frame type byte for this body.
+    const TYPE: MessageType;
+    /// Field limits and consistency rules.
+    fn check(&self) -> Result<(), ProtocolError>;
+}
+
+macro_rules! impl_wire_body {
+    ($($ty:ident => $variant:ident, $check:expr;)*) => {
+        $(
+            impl From<$ty> for Message {
+                fn from(m: $ty) -> Message {
+                    Message::$variant(m)
+                }
+            }
+
+            impl WireBody for $ty {
+                const TYPE: MessageType = MessageType::$variant;
+                fn check(&self) -> Result<(), ProtocolError> {
+                    let check: fn(&$ty) -> Result<(), ProtocolError> = $check;
+                    check(self)
+                }
+            }
+
+            impl $ty {
+                /// Encodes this message as one complete frame.
+                pub fn encode_frame(&self) -> Result<Vec<u8>, ProtocolError> {
+                    let mut out = Vec::new();
+                    crate::frame::encode_body_frame(self, &mut out)?;
+                    Ok(out)
+                }
+            }
+        )*
+    };
+}
+
+impl_wire_body! {
+    Hello => Hello, Hello::validate;
+    Welcome => Welcome, Welcome::validate;
+    ErrorMsg => Error, ErrorMsg::validate;
+    Goodbye => Goodbye, |_| Ok(());
+    Cancel => Cancel, |_| Ok(());
+    LodRequest => LodRequest, |_| Ok(());
+    ResponseHead => ResponseHead, ResponseHead::validate;
+}
+
+fn check_len(field: &'static str, len: usize, max: usize) -> Result<(), ProtocolError> {
+    if len > max {
+        Err(ProtocolError::InvalidField {
+            field,
+            reason: format!("{len} bytes exceeds the limit of {max}"),
+        })
+    } else {
+        Ok(())
+    }
+}

@@ -1,0 +1,215 @@
+//! Request streams: one [`LodRequest`] frame from the client, one
+//! [`ResponseHead`] frame plus raw record bytes from the server.
+//!
+//! The record body is not bincode-framed: it is exactly `body_len` raw bytes
+//! after the head, and `body_len` must equal the requested `size`. The body
+//! is therefore length-prefixed twice (by the request and by the head), so a
+//! stream that ends early is always detected as [`ProtocolError::ShortBody`].
+
+use crate::error::ProtocolError;
+use crate::frame::{FrameDecoder, MAX_FRAME_LEN};
+use crate::message::{ErrorMsg, LodRequest, Message, ResponseHead, Status};
+
+/// Decodes the whole client side of a request stream (read to its end, at
+/// most [`crate::LOD_REQUEST_FRAME_LEN`] bytes): exactly one [`LodRequest`] frame.
+pub fn decode_request_stream(bytes: &[u8]) -> Result<LodRequest, ProtocolError> {
+    let mut dec = FrameDecoder::with_max_frame_len(MAX_FRAME_LEN);
+    dec.push(bytes);
+    match dec.next_frame()? {
+        Some(Message::LodRequest(req)) => {
+            if dec.buffered() != 0 {
+                return Err(ProtocolError::TrailingData {
+                    extra: dec.buffered() as u64,
+                    after: "request frame",
+                });
+            }
+            Ok(req)
+        }
+        Some(other) => Err(ProtocolError::UnexpectedMessage {
+            got: other.msg_type(),
+            context: "on a request stream (expected lod_request)",
+        }),
+        None => {
+            dec.finish()?;
+            Err(ProtocolError::UnexpectedEnd {
+                during: "before the request frame",
+            })
+        }
+    }
+}
+
+/// A fully received response.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Response {
+    /// The record bytes (exactly the requested size).
+    Record {
+        /// The request id.
+        id: u64,
+        /// The raw record bytes.
+        body: Vec<u8>,
+    },
+    /// The server refused or failed the request.
+    Error {
+        /// The request id.
+        id: u64,
+        /// Why.
+        error: ErrorMsg,
+    },
+}
+
+#[derive(Debug, Clone)]
+enum State {
+    Head(FrameDecoder),
+    Body { head: ResponseHead, body: Vec<u8> },
+    Failed(ProtocolError),
+}
+
+/// Incremental decoder for the server side of a request stream, used by the
+/// client. Push bytes as they arrive, then call [`ResponseDecoder::finish`]
+/// at end of stream.
+///
+/// It checks that the head's id matches the request, that a successful
+/// head's `body_len` equals the requested `size`, that no byte follows the
+/// body, and (in `finish`) that the body is complete.
+#[derive(Debug, Clone)]
+pub struct ResponseDecoder {
+    request: LodRequest,
+    state: State,
+}
+
+impl ResponseDecoder {
+    /// A decoder for the response to `request`.
+    pub fn new(request: LodRequest) -> Self {
+        ResponseDecoder {
+            request,
+            state: State::Head(FrameDecoder::with_max_frame_len(MAX_FRAME_LEN)),
+        }
+    }
+
+    /// The request this decoder expects a response to.
+    pub fn request(&self) -> &LodRequest {
+        &self.request
+    }
+
+    /// The head, once received.
+    pub fn head(&self) -> Option<&ResponseHead> {
+        match &self.state {
+            State::Body { head, .. } => Some(head),
+            _ => None,
+        }
+    }
+
+    /// Body bytes still expected (`None` until the head has arrived).
+    pub fn remaining_body(&self) -> Option<u32> {
+        match &self.state {
+            State::Body { head, body } => Some(head.body_len - body.len() as u32),
+            _ => None,
+        }
+    }
+
+    /// True once the head and the whole body have arrived.
+    pub fn is_complete(&self) -> bool {
+        self.remaining_body() == Some(0)
+    }
+
+    /// Feeds received bytes. Fails on a malformed or mismatched head and on
+    /// bytes past the end of the body; the decoder then stays failed.
+    pub fn push(&mut self, bytes: &[u8]) -> Result<(), ProtocolError> {
+        let result = self.push_inner(bytes);
+        if let Err(e) = &result {
+            self.state = State::Failed(e.clone());
+        }
+        result
+    }
+
+    fn push_inner(&mut self, mut bytes: &[u8]) -> Result<(), ProtocolError> {
+        if let State::Head(dec) = &mut self.state {
+            dec.push(bytes);
+            bytes = &[];
+            let Some(msg) = dec.next_frame()? else {
+                return Ok(());
+            };
+            let head = match msg {
+                Message::ResponseHead(head) => head,
+                other => {
+                    return Err(ProtocolError::UnexpectedMessage {
+                        got: other.msg_type(),
+                        context: "on a request stream (expected response_head)",
+                    })
+                }
+            };
+            check_head(&self.request, &head)?;
+            let rest = dec.take_buffered();
+            let mut body = Vec::with_capacity(head.body_len as usize);
+            append_body(&head, &mut body, &rest)?;
+            self.state = State::Body { head, body };
+        }
+        match &mut self.state {
+            State::Body { head, body } => append_body(head, body, bytes),
+            State::Failed(e) => Err(e.clone()),
+            State::Head(_) => Ok(()),
+        }
+    }
+
+    /// Call at end of stream: returns the response, or an error if the head
+    /// or the body is incomplete.
+    pub fn finish(self) -> Result<Response, ProtocolError> {
+        match self.state {
+            State::Failed(e) => Err(e),
+            State::Head(dec) => {
+                dec.finish()?;
+                Err(ProtocolError::UnexpectedEnd {
+                    during: "before the response head",
+                })
+            }
+            State::Body { head, body } => {
+                if body.len() != head.body_len as usize {
+                    return Err(ProtocolError::ShortBody {
+                        expected: head.body_len,
+                        received: body.len() as u64,
+                    });
+                }
+                Ok(match head.status {
+                    Status::Ok => Response::Record { id: head.id, body },
+                    Status::Error(error) => Response::Error { id: head.id, error },
+                })
+            }
+        }
+    }
+}
+
+/// Decodes a whole response stream (read to its end) to `request`.
+pub fn decode_response(request: &LodRequest, stream: &[u8]) -> Result<Response, ProtocolError> {
+    let mut dec = ResponseDecoder::new(*request);
+    dec.push(stream)?;
+    dec.finish()
+}
+
+/// Checks a response head against its request.
+pub fn check_head(request: &LodRequest, head: &ResponseHead) -> Result<(), ProtocolError> {
+    if head.id != request.id {
+        return Err(ProtocolError::ResponseIdMismatch {
+            expected: request.id,
+            got: head.id,
+        });
+    }
+    if head.status == Status::Ok && head.body_len != request.size {
+        return Err(ProtocolError::BodyLengthMismatch {
+            expected: request.size,
+            got: head.body_len,
+        });
+    }
+    Ok(())
+}
+
+fn append_body(head: &ResponseHead, body: &mut Vec<u8>, bytes: &[u8]) -> Result<(), ProtocolError> {
+    let room = head.body_len as usize - body.len();
+    if bytes.len() > room {
+        return Err(ProtocolError::TrailingData {
+            extra: (bytes.len() - room) as u64,
+            after: "response body",
+        });
+    }
+    body.extend_from_slice(bytes);
+    Ok(())
+}

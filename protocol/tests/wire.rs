@@ -1,0 +1,155 @@
+//! Byte-exact wire format checks. These pin the encoding documented in
+//! `docs/PROTOCOL.md` (the hex there is copied from here), so that a future
+//! replacement of bincode can be verified to produce identical bytes.
+
+use planet_protocol::*;
+
+/// Parses whitespace-separated hex bytes; `"s:TEXT"` tokens are ASCII text.
+fn hex(spec: &str) -> Vec<u8> {
+    let mut out = Vec::new();
+    for tok in spec.split_whitespace() {
+        if let Some(text) = tok.strip_prefix("s:") {
+            out.extend_from_slice(text.as_bytes());
+        } else {
+            out.push(u8::from_str_radix(tok, 16).expect("hex byte"));
+        }
+    }
+    out
+}
+
+fn assert_wire(msg: Message, expected: &str) {
+    let expected = hex(expected);
+    let bytes = msg.encode_frame().expect("encode");
+    assert_eq!(bytes, expected, "encoding of {msg:?}");
+    let (decoded, used) = decode_frame(&expected).expect("decode").expect("complete");
+    assert_eq!(used, expected.len());
+    assert_eq!(decoded, msg);
+}
+
+#[test]
+fn hello_bytes() {
+    let hello = Hello {
+        version: 1,
+        tenant: "acme".into(),
+        token: "s3cr3t".into(),
+        database: "earth".into(),
+    };
+    // Also spelled out as plain hex, exactly as in docs/PROTOCOL.md.
+    let doc_hex = "2a 00 00 00 01 01 00 04 00 00 00 00 00 00 00 61 63 6d 65 \
+                   06 00 00 00 00 00 00 00 73 33 63 72 33 74 \
+                   05 00 00 00 00 00 00 00 65 61 72 74 68";
+    assert_eq!(hello.encode_frame().unwrap(), hex(doc_hex));
+    assert_eq!(hex(doc_hex).len(), 46);
+    assert_wire(
+        hello.into(),
+        "2a 00 00 00  01  01 00 \
+         04 00 00 00 00 00 00 00 s:acme \
+         06 00 00 00 00 00 00 00 s:s3cr3t \
+         05 00 00 00 00 00 00 00 s:earth",
+    );
+}
+
+#[test]
+fn welcome_bytes() {
+    let welcome = Welcome {
+        version: 1,
+        database: "earth".into(),
+        file_size: 1_000_000,
+        header: vec![0xaa, 0xbb],
+        limits: Limits {
+            max_in_flight: 64,
+            max_record_size: 1 << 20,
+            max_bytes_per_second: 0,
+            idle_timeout_ms: 30_000,
+        },
+    };
+    assert_wire(
+        welcome.into(),
+        "36 00 00 00  02  01 00 \
+         05 00 00 00 00 00 00 00 s:earth \
+         40 42 0f 00 00 00 00 00 \
+         02 00 00 00 00 00 00 00 aa bb \
+         40 00 00 00  00 00 10 00  00 00 00 00 00 00 00 00  30 75 00 00",
+    );
+}
+
+#[test]
+fn lod_request_bytes() {
+    let req = LodRequest {
+        id: 7,
+        offset: 0x0102_0304_0506_0708,
+        size: 4096,
+    };
+    assert_wire(
+        req.into(),
+        "15 00 00 00  10  07 00 00 00 00 00 00 00  08 07 06 05 04 03 02 01  00 10 00 00",
+    );
+    assert_eq!(req.encode_frame().unwrap().len(), LOD_REQUEST_FRAME_LEN);
+}
+
+#[test]
+fn response_head_bytes() {
+    let ok = ResponseHead::ok(7, 4096);
+    assert_wire(
+        ok.clone().into(),
+        "11 00 00 00  11  07 00 00 00 00 00 00 00  00 00 00 00  00 10 00 00",
+    );
+    assert_eq!(ok.encode_frame().unwrap().len(), RESPONSE_HEAD_OK_FRAME_LEN);
+
+    let err = ResponseHead::error(7, ErrorMsg::new(ErrorCode::OutOfRange, "bad"));
+    assert_wire(
+        err.into(),
+        "1e 00 00 00  11  07 00 00 00 00 00 00 00  01 00 00 00  09 00 \
+         03 00 00 00 00 00 00 00 s:bad  00 00 00 00",
+    );
+}
+
+#[test]
+fn small_control_message_bytes() {
+    assert_wire(
+        ErrorMsg::new(ErrorCode::Unauthorized, "bad token").into(),
+        "14 00 00 00  03  02 00  09 00 00 00 00 00 00 00 62 61 64 20 74 6f 6b 65 6e",
+    );
+    assert_wire(
+        Goodbye {
+            reason: ErrorCode::ShuttingDown,
+        }
+        .into(),
+        "03 00 00 00  04  12 00",
+    );
+    assert_wire(
+        Cancel { id: 7 }.into(),
+        "09 00 00 00  05  07 00 00 00 00 00 00 00",
+    );
+}
+
+#[test]
+fn constants() {
+    assert_eq!(PROTOCOL_VERSION, 1);
+    assert_eq!(ALPN, b"planet/1");
+    assert_eq!(MAX_FRAME_LEN, 65536);
+    assert_eq!(LOD_REQUEST_FRAME_LEN, 25);
+    assert_eq!(RESPONSE_HEAD_OK_FRAME_LEN, 21);
+    assert_eq!(quic::STREAM_CANCELLED, 17);
+}
+
+#[test]
+fn protocol_doc_shows_the_hello_bytes() {
+    let hello = Hello {
+        version: 1,
+        tenant: "acme".into(),
+        token: "s3cr3t".into(),
+        database: "earth".into(),
+    };
+    let hex: String = hello
+        .encode_frame()
+        .unwrap()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    let doc = include_str!("../../docs/PROTOCOL.md");
+    assert!(
+        doc.lines().any(|l| l.trim() == hex),
+        "docs/PROTOCOL.md must contain the Hello example as the line {hex}"
+    );
+}
