@@ -1,1 +1,28 @@
-//! placeholder
+//! `planet-view`: the wgpu renderer of the planet-streaming system.
+//!
+//! The streaming client decides *what* to draw; this crate draws a list of
+//! [`DrawBlock`]s:
+//!
+//! - [`mesh`]: a block's vertices, built off the render thread from its
+//!   elevation grid, as f32 offsets from an f64 block centre.
+//! - [`masks`]: the shared index masks per LOD, with the edge strips that
+//!   stitch a block to a coarser neighbour (no cracks, no T-junctions).
+//! - [`clip_planes`]: horizon-fitted near/far planes (thesis Eq. 4.3).
+//! - [`render`]: the wgpu 30 pipeline: camera-relative, reversed-Z, lighting,
+//!   per-block colour textures (or an altitude ramp), GPU caches.
+//! - [`headless`]: offscreen rendering with colour and depth read-back.
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod clip_planes;
+pub mod headless;
+pub mod masks;
+pub mod mesh;
+pub mod render;
+
+pub use headless::{HeadlessRenderer, Image, ViewError};
+pub use mesh::BlockMesh;
+pub use render::{
+    BlockTexture, CameraF64, ColourRef, DepthMode, DrawBlock, FrameTarget, Projection,
+    RenderSettings, Renderer,
+};

@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Short fuzzing run of every target (CI), or a longer one:
+#   fuzz/run.sh            # 15 s per target
+#   FUZZ_SECONDS=3600 fuzz/run.sh   # an hour per target
+# Needs cargo-fuzz (installed if missing). Runs on stable Rust without a
+# sanitizer (--sanitizer none): libFuzzer's coverage guidance and Rust's own
+# bounds and overflow checks (debug assertions on) find the panics we care
+# about. Any crash is saved under fuzz/artifacts/TARGET/ and makes this fail;
+# copy it into fuzz/regressions/TARGET/ so `cargo test -p planet-tests` replays it.
+set -euo pipefail
+cd "$(dirname "$0")"
+secs="${FUZZ_SECONDS:-15}"
+command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
+for t in $(cargo fuzz list); do
+  mkdir -p "corpus/$t"
+  echo "fuzz: $t for ${secs}s"
+  cargo fuzz run --sanitizer none -O -a "$t" "corpus/$t" -- \
+    -max_total_time="$secs" -max_len=40000 -print_final_stats=1 2>&1 \
+    | grep -E "^(Done|stat::number_of_executed_units)|panicked|SUMMARY|crash" || true
+  if ls "artifacts/$t"/crash-* >/dev/null 2>&1; then
+    echo "fuzz: $t found a crash: $(ls artifacts/$t/crash-*)"; exit 1
+  fi
+done

@@ -1,0 +1,235 @@
+//! Block vertex data, built off the render thread from an elevation grid.
+//!
+//! Positions are computed in f64 on the datum with core's equal-angle
+//! sampling exactly as core does (`sample_coord(x·W + i, W·2^L)`,
+//! `plane_from_angle`, `Face::cube_point`), so a sample shared by two blocks
+//! (also across cube edges, and with a coarser block whose sample `k` is this
+//! block's sample `k·2^d`) has a bit-identical f64 position. The block centre
+//! is kept in f64 and the vertices are stored as f32 offsets from it
+//! (camera-relative rendering adds `centre − eye` in f64 per block).
+
+use planet_core::cube::{normalize, plane_from_angle, sample_coord};
+use planet_core::{BlockId, Datum};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// One vertex as uploaded to the GPU (40 bytes).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct Vertex {
+    /// Position relative to the block centre, metres.
+    pub pos: [f32; 3],
+    /// Unit surface normal (planet frame).
+    pub normal: [f32; 3],
+    /// Texture coordinate in the block, `(i/W, j/W)`.
+    pub uv: [f32; 2],
+    /// Altitude above the datum in metres.
+    pub alt: f32,
+    /// Padding.
+    pub _pad: f32,
+}
+
+static NEXT_VERSION: AtomicU64 = AtomicU64::new(1);
+
+/// The vertex array of one block, both LODs in one `(W+1)²` array.
+#[derive(Debug, Clone)]
+pub struct BlockMesh {
+    /// The block.
+    pub id: BlockId,
+    /// Block width `W`.
+    pub w: usize,
+    /// Block centre (the datum point under the block's middle, at the mean of
+    /// the minimum and maximum altitude), planet frame, metres.
+    pub centre: [f64; 3],
+    /// Vertices, row-major `j·(W+1) + i`.
+    pub vertices: Vec<Vertex>,
+    /// Unique per built mesh: the GPU cache key is `(id, version)`.
+    pub version: u64,
+    /// Minimum and maximum altitude of the LOD 1 samples (metres).
+    pub alt_range: (f32, f32),
+    /// Largest distance of a LOD 1 vertex from `centre` (bounding sphere).
+    pub radius: f64,
+}
+
+/// Planet-frame position of sample `(i, j)` of block `id` of width `w` at
+/// altitude `h` (bit-identical for shared samples).
+pub fn sample_position(
+    datum: &Datum,
+    id: BlockId,
+    w: usize,
+    i: usize,
+    j: usize,
+    h: f64,
+) -> [f64; 3] {
+    let n = (w as u64) << id.level;
+    let s = sample_coord(id.x as u64 * w as u64 + i as u64, n);
+    let t = sample_coord(id.y as u64 * w as u64 + j as u64, n);
+    let dir = normalize(id.face.cube_point(plane_from_angle(s), plane_from_angle(t)));
+    datum.position(dir, h)
+}
+
+impl BlockMesh {
+    /// Build a block's vertices from its elevation grid `(W+1)²` (row-major,
+    /// `j` along `v`); altitude = `grid · scale + offset` metres.
+    ///
+    /// The LOD 1 samples (even `i` and `j`) must be valid; the odd ones only
+    /// matter when the block is drawn at LOD 0. Normals of LOD 1 samples use
+    /// LOD 1 neighbours only, so they are valid either way.
+    pub fn build(
+        datum: &Datum,
+        id: BlockId,
+        w: usize,
+        grid: &[i16],
+        scale: f64,
+        offset: f64,
+    ) -> BlockMesh {
+        let side = w + 1;
+        assert_eq!(grid.len(), side * side, "grid must be (W+1)²");
+        assert!(w >= 4 && w.is_multiple_of(2));
+        let alt = |i: usize, j: usize| grid[j * side + i] as f64 * scale + offset;
+        // Altitude range over the LOD 1 samples.
+        let (mut lo, mut hi) = (f64::MAX, f64::MIN);
+        for j in (0..side).step_by(2) {
+            for i in (0..side).step_by(2) {
+                let a = alt(i, j);
+                lo = lo.min(a);
+                hi = hi.max(a);
+            }
+        }
+        let centre = sample_position(datum, id, w, w / 2, w / 2, 0.5 * (lo + hi));
+        let positions: Vec<[f64; 3]> = (0..side * side)
+            .map(|k| {
+                let (i, j) = (k % side, k / side);
+                sample_position(datum, id, w, i, j, alt(i, j))
+            })
+            .collect();
+        let mut radius = 0.0f64;
+        let mut vertices = Vec::with_capacity(side * side);
+        for j in 0..side {
+            for i in 0..side {
+                let p = positions[j * side + i];
+                let rel = [p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]];
+                let lod1 = i % 2 == 0 && j % 2 == 0;
+                if lod1 {
+                    radius =
+                        radius.max((rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2]).sqrt());
+                }
+                // Central differences inside the block with the LOD's step,
+                // one-sided on the border.
+                let st = if lod1 { 2 } else { 1 };
+                let (i0, i1) = (i.saturating_sub(st), (i + st).min(w));
+                let (j0, j1) = (j.saturating_sub(st), (j + st).min(w));
+                let du = sub(positions[j * side + i1], positions[j * side + i0]);
+                let dv = sub(positions[j1 * side + i], positions[j0 * side + i]);
+                let n = cross(du, dv);
+                let nl = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+                let normal = if nl > 0.0 && nl.is_finite() {
+                    [n[0] / nl, n[1] / nl, n[2] / nl]
+                } else {
+                    normalize(p)
+                };
+                vertices.push(Vertex {
+                    pos: [rel[0] as f32, rel[1] as f32, rel[2] as f32],
+                    normal: [normal[0] as f32, normal[1] as f32, normal[2] as f32],
+                    uv: [i as f32 / w as f32, j as f32 / w as f32],
+                    alt: alt(i, j) as f32,
+                    _pad: 0.0,
+                });
+            }
+        }
+        BlockMesh {
+            id,
+            w,
+            centre,
+            vertices,
+            version: NEXT_VERSION.fetch_add(1, Ordering::Relaxed),
+            alt_range: (lo as f32, hi as f32),
+            radius,
+        }
+    }
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use planet_core::{Edge, Face};
+
+    #[test]
+    fn shared_edges_are_identical_in_f64_across_faces_and_levels() {
+        let datum = Datum::WGS84;
+        let w = 16;
+        for f in Face::ALL {
+            let b = BlockId::new(f, 2, 0, 3).unwrap();
+            for edge in Edge::ALL {
+                let (nb, back) = b.neighbour(edge);
+                for k in 0..=w {
+                    let at = |blk: BlockId, e: Edge, k: usize| {
+                        let (i, j) = match e {
+                            Edge::Left => (0, k),
+                            Edge::Right => (w, k),
+                            Edge::Bottom => (k, 0),
+                            Edge::Top => (k, w),
+                        };
+                        sample_position(&datum, blk, w, i, j, 123.0)
+                    };
+                    assert_eq!(at(b, edge, k), at(nb, back, k));
+                }
+                // A child of the neighbour, one level finer: its every other
+                // edge sample is one of ours.
+                let (nb, back) = b.neighbour(edge);
+                let child = match back {
+                    Edge::Left => nb.child(0),
+                    Edge::Right => nb.child(1),
+                    Edge::Bottom => nb.child(0),
+                    Edge::Top => nb.child(2),
+                };
+                for k in 0..=w / 2 {
+                    let (i, j) = match back {
+                        Edge::Left => (0, 2 * k),
+                        Edge::Right => (w, 2 * k),
+                        Edge::Bottom => (2 * k, 0),
+                        Edge::Top => (2 * k, w),
+                    };
+                    let fine = sample_position(&datum, child, w, i, j, 5.0);
+                    let (ci, cj) = match edge {
+                        Edge::Left => (0, k),
+                        Edge::Right => (w, k),
+                        Edge::Bottom => (k, 0),
+                        Edge::Top => (k, w),
+                    };
+                    // The child is the first half along the edge.
+                    let coarse = sample_position(&datum, b, w, ci, cj, 5.0);
+                    assert_eq!(fine, coarse, "{b:?} {edge:?} {k}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn build_is_centred_and_normals_point_out() {
+        let w = 8;
+        let grid: Vec<i16> = (0..81).map(|k| (k % 7) as i16 * 10).collect();
+        let id = BlockId::new(Face::new(4).unwrap(), 3, 2, 5).unwrap();
+        let m = BlockMesh::build(&Datum::WGS84, id, w, &grid, 1.0, -20.0);
+        assert_eq!(m.vertices.len(), 81);
+        let c = normalize(m.centre);
+        for v in &m.vertices {
+            let n = v.normal;
+            assert!(n[0] as f64 * c[0] + n[1] as f64 * c[1] + n[2] as f64 * c[2] > 0.9);
+        }
+        let m2 = BlockMesh::build(&Datum::WGS84, id, w, &grid, 1.0, -20.0);
+        assert_ne!(m.version, m2.version);
+        assert_eq!(m.alt_range.0, -20.0);
+    }
+}

@@ -1,0 +1,64 @@
+struct Globals {
+    view_proj: mat4x4<f32>,
+    sun: vec4<f32>,
+    params: vec4<f32>,
+};
+struct BlockU {
+    offset: vec4<f32>,
+    tex: vec4<f32>,
+    flags: vec4<f32>,
+};
+@group(0) @binding(0) var<uniform> g: Globals;
+@group(1) @binding(0) var<uniform> b: BlockU;
+@group(2) @binding(0) var tex: texture_2d<f32>;
+@group(2) @binding(1) var samp: sampler;
+
+struct VOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) normal: vec3<f32>,
+    @location(1) uv: vec2<f32>,
+    @location(2) alt: f32,
+};
+
+@vertex
+fn vs(
+    @location(0) pos: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) uv: vec2<f32>,
+    @location(3) alt: f32,
+) -> VOut {
+    var out: VOut;
+    // Camera-relative: the block centre minus the eye was computed in f64.
+    let rel = pos + b.offset.xyz;
+    out.clip = g.view_proj * vec4<f32>(rel, 1.0);
+    out.normal = normal;
+    out.uv = uv;
+    out.alt = alt;
+    return out;
+}
+
+// deep blue -> blue -> green -> brown -> white
+fn ramp(a: f32) -> vec3<f32> {
+    let deep = vec3<f32>(0.0, 0.02, 0.15);
+    let shallow = vec3<f32>(0.05, 0.25, 0.6);
+    let green = vec3<f32>(0.1, 0.45, 0.12);
+    let brown = vec3<f32>(0.4, 0.28, 0.12);
+    let white = vec3<f32>(0.95, 0.95, 0.95);
+    if (a < 0.0) {
+        return mix(shallow, deep, clamp(-a / 6000.0, 0.0, 1.0));
+    }
+    if (a < 1500.0) {
+        return mix(green, brown, a / 1500.0);
+    }
+    return mix(brown, white, clamp((a - 1500.0) / 3500.0, 0.0, 1.0));
+}
+
+@fragment
+fn fs(in: VOut) -> @location(0) vec4<f32> {
+    let t = textureSample(tex, samp, in.uv * b.tex.xy + b.tex.zw).rgb;
+    let base = select(ramp(in.alt), t, b.flags.x > 0.5);
+    let n = normalize(in.normal);
+    let diffuse = max(dot(n, g.sun.xyz), 0.0);
+    let lit = base * (g.params.x + (1.0 - g.params.x) * diffuse);
+    return vec4<f32>(lit, 1.0);
+}
