@@ -1,0 +1,417 @@
+//! The database build: thesis §5.3, Alg. 5.2 (BlockSubdiv; thesis-notes
+//! §9.8), bottom-up, depth-first, written linearly.
+//!
+//! Per block: a leaf's full grid comes from the source at the leaf's
+//! resolution; an inner block's full grid is gathered from its four
+//! children's first LODs (`lod::merge_elevation`, `lod::merge_colour` of each
+//! child's `lod::colour_filter`). The block's one record (`subDepth = 1`) is
+//! then encoded and appended, *after* its children's, and the block returns
+//! its first LOD and its [`ChildRef`] to the parent. The roots' first LODs and
+//! references go into the header (thesis §3.3).
+//!
+//! Elevation and colour trees are built in the same traversal (linked trees,
+//! thesis §4.4.1): the colour block `(f, L, x, y)` covers exactly the
+//! elevation block with the same id, at twice the definition, and its
+//! reference copies that block's elevation bounds.
+//!
+//! Parallelism: rayon over faces and children; records are encoded on the
+//! workers and appended by one `Mutex<DbWriter>` that returns
+//! `(offset, size)`. A parent is appended only after its children returned,
+//! so the file is post-order within every subtree. Memory: each in-flight
+//! block holds one grid plus its children's first LODs, so the total is
+//! bounded by threads × depth grids.
+
+use crate::error::BuildError;
+use crate::plan::Plan;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use parking_lot::Mutex;
+use planet_core::codec;
+use planet_core::format::{encode_record, ChildRef, DbWriter, Header, Tree, TreeInfo};
+use planet_core::lod::{self, Rgb};
+use planet_core::{BlockId, Datum, Face};
+use rayon::prelude::*;
+use std::io::IsTerminal;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+/// Elevation block width.
+pub const EW: usize = crate::source::ELEVATION_WIDTH;
+/// Colour block width.
+pub const CW: usize = crate::source::COLOUR_WIDTH;
+
+/// Where leaf grids come from.
+pub trait GridSource: Sync {
+    /// Fill the full `(W+1)²` elevation grid (stored units) of a leaf.
+    fn elevation_leaf(&self, b: BlockId, out: &mut [i16]) -> Result<(), BuildError>;
+    /// The full `Wc²` colour grid of a colour leaf; `elevation` is the full
+    /// elevation grid of the same block.
+    fn colour_leaf(&self, b: BlockId, elevation: &[i16]) -> Result<Vec<Rgb>, BuildError>;
+    /// The reference surface.
+    fn datum(&self) -> Datum;
+    /// Metres per stored elevation unit.
+    fn elevation_scale(&self) -> f64;
+    /// Whether there is a colour tree.
+    fn has_colour(&self) -> bool;
+    /// Header description.
+    fn description(&self) -> String;
+}
+
+/// Build knobs.
+#[derive(Debug, Clone)]
+pub struct BuildOptions {
+    /// Worker threads (`None`: rayon's default).
+    pub threads: Option<usize>,
+    /// Hide progress bars.
+    pub quiet: bool,
+}
+
+/// What a build produced.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct BuildStats {
+    /// Elevation records written.
+    pub elevation_records: u64,
+    /// Colour records written.
+    pub colour_records: u64,
+    /// Elevation samples stored (new samples of every record plus the roots'
+    /// first LODs: each face-map sample once, edges shared between blocks
+    /// counted per block).
+    pub elevation_samples: u64,
+    /// Colour texels stored (same counting).
+    pub colour_samples: u64,
+    /// File length in bytes.
+    pub file_bytes: u64,
+    /// Bytes of elevation records.
+    pub elevation_bytes: u64,
+    /// Bytes of colour records.
+    pub colour_bytes: u64,
+    /// Wall time in seconds.
+    pub seconds: f64,
+    /// Deepest elevation level.
+    pub max_level: u8,
+    /// Deepest colour level.
+    pub colour_max_level: u8,
+}
+
+impl BuildStats {
+    /// Output samples (elevation + colour) per second.
+    pub fn samples_per_second(&self) -> f64 {
+        (self.elevation_samples + self.colour_samples) as f64 / self.seconds.max(1e-9)
+    }
+}
+
+struct Out {
+    elev_lod1: Vec<i16>,
+    elev_ref: ChildRef,
+    colour: Option<(Vec<Rgb>, ChildRef)>,
+}
+
+struct Ctx<'a> {
+    src: &'a dyn GridSource,
+    plan: &'a Plan,
+    writer: Mutex<Option<DbWriter>>,
+    out_path: &'a Path,
+    scale: f64,
+    bar: ProgressBar,
+    e_records: AtomicU64,
+    c_records: AtomicU64,
+    e_bytes: AtomicU64,
+    c_bytes: AtomicU64,
+}
+
+impl Ctx<'_> {
+    fn append(&self, rec: &[u8], tree: Tree) -> Result<(u64, u32), BuildError> {
+        let mut g = self.writer.lock();
+        let w = g.as_mut().ok_or_else(|| BuildError::Write {
+            path: self.out_path.to_path_buf(),
+            msg: "writer already closed".into(),
+        })?;
+        let r = w
+            .append(rec)
+            .map_err(|e| BuildError::write(self.out_path, e))?;
+        drop(g);
+        let (n, b) = match tree {
+            Tree::Elevation => (&self.e_records, &self.e_bytes),
+            Tree::Colour => (&self.c_records, &self.c_bytes),
+        };
+        n.fetch_add(1, Ordering::Relaxed);
+        b.fetch_add(rec.len() as u64, Ordering::Relaxed);
+        self.bar.inc(1);
+        Ok(r)
+    }
+}
+
+/// Geometric error of rendering a full elevation grid at its first LOD:
+/// max |LOD 0 − bilinear(LOD 1)| in stored units.
+pub fn elevation_lod_error(full: &[i16], w: usize) -> f64 {
+    let side = w + 1;
+    let at = |i: usize, j: usize| full[j * side + i] as f64;
+    let mut e = 0f64;
+    for j in 0..side {
+        for i in 0..side {
+            let p = match (i % 2, j % 2) {
+                (0, 0) => continue,
+                (1, 0) => (at(i - 1, j) + at(i + 1, j)) / 2.0,
+                (0, 1) => (at(i, j - 1) + at(i, j + 1)) / 2.0,
+                _ => {
+                    (at(i - 1, j - 1) + at(i + 1, j - 1) + at(i - 1, j + 1) + at(i + 1, j + 1))
+                        / 4.0
+                }
+            };
+            e = e.max((at(i, j) - p).abs());
+        }
+    }
+    e
+}
+
+/// Colour error of rendering a block at its filtered first LOD: max channel
+/// difference between each texel and its 2×2 cell's LOD 1 value.
+pub fn colour_lod_error(full: &[Rgb], lod1: &[Rgb], w: usize) -> f64 {
+    let h = w / 2;
+    let mut e = 0u8;
+    for j in 0..w {
+        for i in 0..w {
+            let m = lod1[(j / 2) * h + i / 2];
+            let t = full[j * w + i];
+            for ch in 0..3 {
+                e = e.max(t[ch].abs_diff(m[ch]));
+            }
+        }
+    }
+    e as f64
+}
+
+fn build_block(ctx: &Ctx, b: BlockId, colour_here: bool) -> Result<Out, BuildError> {
+    let side = EW + 1;
+    let esplit = ctx.plan.elevation_split(b);
+    let csplit = colour_here && ctx.plan.colour_split(b);
+    let mut full = vec![0i16; side * side];
+    let (kids, child_err, lo, hi) = if esplit {
+        let kids: Vec<Out> = b
+            .children()
+            .into_par_iter()
+            .map(|c| build_block(ctx, c, csplit))
+            .collect::<Result<_, _>>()?;
+        let mut err = 0f64;
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for (k, kid) in kids.iter().enumerate() {
+            let mut tmp = vec![0i16; side * side];
+            lod::elevation_place_first_lod(&kid.elev_lod1, EW, &mut tmp);
+            lod::merge_elevation(&tmp, EW, k, &mut full);
+            err = err.max(kid.elev_ref.error as f64);
+            lo = lo.min(kid.elev_ref.min_elevation);
+            hi = hi.max(kid.elev_ref.max_elevation);
+        }
+        (kids, err, lo, hi)
+    } else {
+        ctx.src.elevation_leaf(b, &mut full)?;
+        let (mn, mx) = full
+            .iter()
+            .fold((i16::MAX, i16::MIN), |(a, c), &v| (a.min(v), c.max(v)));
+        (
+            Vec::new(),
+            0.0,
+            (mn as f64 * ctx.scale) as f32,
+            (mx as f64 * ctx.scale) as f32,
+        )
+    };
+    let erefs: Vec<ChildRef> = kids.iter().map(|k| k.elev_ref).collect();
+    let error = (elevation_lod_error(&full, EW) * ctx.scale + child_err) as f32;
+    let rec = encode_record(
+        Tree::Elevation,
+        b,
+        &erefs,
+        &codec::encode_elevation(&full, EW),
+    );
+    let (offset, size) = ctx.append(&rec, Tree::Elevation)?;
+    let elev_ref = ChildRef {
+        offset,
+        size,
+        error,
+        min_elevation: lo,
+        max_elevation: hi,
+    };
+    let colour = if colour_here {
+        let (cfull, crefs, cerr) = if csplit {
+            let mut cfull = vec![[0u8; 3]; CW * CW];
+            let mut crefs = Vec::with_capacity(4);
+            let mut cerr = 0f64;
+            for (k, kid) in kids.iter().enumerate() {
+                let (l1, r) = kid
+                    .colour
+                    .as_ref()
+                    .ok_or_else(|| BuildError::Options(format!("colour child of {b:?} missing")))?;
+                lod::merge_colour(l1, CW, k, &mut cfull);
+                crefs.push(*r);
+                cerr = cerr.max(r.error as f64);
+            }
+            (cfull, crefs, cerr)
+        } else {
+            (ctx.src.colour_leaf(b, &full)?, Vec::new(), 0.0)
+        };
+        let lod1 = lod::colour_filter(&cfull, CW);
+        let rec = encode_record(
+            Tree::Colour,
+            b,
+            &crefs,
+            &codec::encode_colour(&cfull, &lod1, CW),
+        );
+        let (offset, size) = ctx.append(&rec, Tree::Colour)?;
+        let r = ChildRef {
+            offset,
+            size,
+            error: (colour_lod_error(&cfull, &lod1, CW) + cerr) as f32,
+            min_elevation: lo,
+            max_elevation: hi,
+        };
+        Some((lod1, r))
+    } else {
+        None
+    };
+    Ok(Out {
+        elev_lod1: lod::elevation_first_lod(&full, EW),
+        elev_ref,
+        colour,
+    })
+}
+
+/// Build a database from `src` with tree shape `plan` into `out`.
+pub fn build(
+    src: &dyn GridSource,
+    plan: &Plan,
+    out: &Path,
+    opts: &BuildOptions,
+) -> Result<BuildStats, BuildError> {
+    let pool = {
+        let mut b = rayon::ThreadPoolBuilder::new();
+        if let Some(n) = opts.threads {
+            b = b.num_threads(n.max(1));
+        }
+        b.build()
+            .map_err(|e| BuildError::Options(format!("thread pool: {e}")))?
+    };
+    pool.install(|| build_inner(src, plan, out, opts))
+}
+
+fn build_inner(
+    src: &dyn GridSource,
+    plan: &Plan,
+    out: &Path,
+    opts: &BuildOptions,
+) -> Result<BuildStats, BuildError> {
+    let start = Instant::now();
+    let colour = src.has_colour() && plan.colour_level().is_some();
+    let (ne, nc) = plan.block_counts();
+    let total = ne + if colour { nc } else { 0 };
+    let bar = if opts.quiet || !std::io::stderr().is_terminal() {
+        ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::hidden())
+    } else {
+        let b = ProgressBar::new(total);
+        if let Ok(style) = ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} records  ETA {eta}",
+        ) {
+            b.set_style(style);
+        }
+        b
+    };
+    let writer = DbWriter::create(out).map_err(|e| BuildError::write(out, e))?;
+    let ctx = Ctx {
+        src,
+        plan,
+        writer: Mutex::new(Some(writer)),
+        out_path: out,
+        scale: src.elevation_scale(),
+        bar,
+        e_records: AtomicU64::new(0),
+        c_records: AtomicU64::new(0),
+        e_bytes: AtomicU64::new(0),
+        c_bytes: AtomicU64::new(0),
+    };
+    let roots: Result<Vec<Out>, BuildError> = Face::ALL
+        .into_par_iter()
+        .map(|f| build_block(&ctx, BlockId::root(f), colour))
+        .collect();
+    let roots = match roots {
+        Ok(r) => r,
+        Err(e) => {
+            if let Some(w) = ctx.writer.lock().take() {
+                w.abandon();
+            }
+            return Err(e);
+        }
+    };
+    ctx.bar.finish_and_clear();
+    let min = roots
+        .iter()
+        .map(|r| r.elev_ref.min_elevation)
+        .fold(f32::INFINITY, f32::min);
+    let max = roots
+        .iter()
+        .map(|r| r.elev_ref.max_elevation)
+        .fold(f32::NEG_INFINITY, f32::max);
+    let header = Header {
+        datum: src.datum(),
+        elevation_scale: src.elevation_scale() as f32,
+        elevation_offset: 0.0,
+        min_elevation: min,
+        max_elevation: max,
+        elevation: TreeInfo {
+            block_width: EW as u16,
+            max_level: plan.max_level(),
+            root_records: std::array::from_fn(|f| roots[f].elev_ref),
+            root_first_lods: std::array::from_fn(|f| roots[f].elev_lod1.clone()),
+        },
+        colour: if colour {
+            Some(TreeInfo {
+                block_width: CW as u16,
+                max_level: plan.colour_max_level(),
+                root_records: std::array::from_fn(|f| {
+                    roots[f].colour.as_ref().map(|c| c.1).unwrap_or_default()
+                }),
+                root_first_lods: std::array::from_fn(|f| {
+                    roots[f]
+                        .colour
+                        .as_ref()
+                        .map(|c| c.0.clone())
+                        .unwrap_or_default()
+                }),
+            })
+        } else {
+            None
+        },
+        description: src.description(),
+    };
+    let writer = ctx.writer.lock().take().ok_or_else(|| BuildError::Write {
+        path: out.to_path_buf(),
+        msg: "writer lost".into(),
+    })?;
+    let file_bytes = match writer.finish(&header) {
+        Ok(n) => n,
+        Err(e) => {
+            let mut tmp = out.as_os_str().to_owned();
+            tmp.push(".tmp");
+            let _ = std::fs::remove_file(tmp);
+            return Err(BuildError::write(out, e));
+        }
+    };
+    let er = ctx.e_records.load(Ordering::Relaxed);
+    let cr = ctx.c_records.load(Ordering::Relaxed);
+    let ehalf = (EW / 2 + 1) as u64;
+    let chalf = (CW / 2) as u64;
+    Ok(BuildStats {
+        elevation_records: er,
+        colour_records: cr,
+        elevation_samples: er * lod::elevation_new_samples(EW) as u64 + 6 * ehalf * ehalf,
+        colour_samples: if colour {
+            cr * (CW * CW - (CW / 2) * (CW / 2)) as u64 + 6 * chalf * chalf
+        } else {
+            0
+        },
+        file_bytes,
+        elevation_bytes: ctx.e_bytes.load(Ordering::Relaxed),
+        colour_bytes: ctx.c_bytes.load(Ordering::Relaxed),
+        seconds: start.elapsed().as_secs_f64(),
+        max_level: plan.max_level(),
+        colour_max_level: if colour { plan.colour_max_level() } else { 0 },
+    })
+}

@@ -1,0 +1,226 @@
+//! `planet-build`: build, verify, inspect and sample planet databases
+//! (thesis Chapter 5).
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand};
+use planet_core::Datum;
+use planet_preprocess::{db, RasterOptions};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(
+    name = "planet-build",
+    version,
+    about = "Build and check planet databases"
+)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Build a database from GeoTIFFs or a procedural planet.
+    Build {
+        /// Elevation GeoTIFFs (EPSG:4326; int16, uint16 or float32).
+        #[arg(long, num_args = 1..)]
+        elevation: Vec<PathBuf>,
+        /// Colour GeoTIFF (RGB8 or grey8).
+        #[arg(long)]
+        colour: Option<PathBuf>,
+        /// Build a procedural planet instead.
+        #[arg(long, conflicts_with_all = ["elevation", "colour"])]
+        procedural: bool,
+        /// Procedural seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Procedural uniform leaf level.
+        #[arg(long, default_value_t = 4)]
+        levels: u8,
+        /// Sphere radius in metres (procedural; default WGS84).
+        #[arg(long, conflicts_with = "wgs84")]
+        radius: Option<f64>,
+        /// WGS84 ellipsoid (the default).
+        #[arg(long)]
+        wgs84: bool,
+        /// Procedural planet without colour.
+        #[arg(long)]
+        no_colour: bool,
+        /// Output database.
+        #[arg(long)]
+        out: PathBuf,
+        /// Deepest level (rasters).
+        #[arg(long, default_value_t = 16)]
+        max_level: u8,
+        /// Memory bound in MiB.
+        #[arg(long, default_value_t = 1024)]
+        max_memory: usize,
+        /// Worker threads.
+        #[arg(long)]
+        threads: Option<usize>,
+        /// No progress bars.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// Check every record of a database; exit 1 at the first bad offset.
+    Verify {
+        /// Database file.
+        db: PathBuf,
+    },
+    /// Print header fields and per-level statistics.
+    Inspect {
+        /// Database file.
+        db: PathBuf,
+        /// JSON output.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Elevation in metres at a point (last line of output).
+    Sample {
+        /// Database file.
+        db: PathBuf,
+        /// Latitude in degrees.
+        #[arg(long, allow_negative_numbers = true)]
+        lat: f64,
+        /// Longitude in degrees.
+        #[arg(long, allow_negative_numbers = true)]
+        lon: f64,
+    },
+}
+
+fn main() {
+    match run() {
+        Ok(()) => {}
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::exit(1);
+        }
+    }
+}
+
+fn run() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.cmd {
+        Cmd::Build {
+            elevation,
+            colour,
+            procedural,
+            seed,
+            levels,
+            radius,
+            wgs84: _,
+            no_colour,
+            out,
+            max_level,
+            max_memory,
+            threads,
+            quiet,
+        } => {
+            let stats = if procedural {
+                let datum = match radius {
+                    Some(r) => Datum::Sphere { radius: r },
+                    None => Datum::WGS84,
+                };
+                if !datum.is_valid() {
+                    bail!("invalid radius {radius:?}");
+                }
+                let opts = planet_preprocess::ProceduralOptions {
+                    seed,
+                    levels,
+                    datum,
+                    colour: !no_colour,
+                    threads,
+                    quiet,
+                };
+                planet_preprocess::build_procedural(&opts, &out)
+                    .with_context(|| format!("building {}", out.display()))?
+            } else {
+                if elevation.is_empty() {
+                    bail!("give --elevation FILE... or --procedural");
+                }
+                let e: Vec<&std::path::Path> = elevation.iter().map(|p| p.as_path()).collect();
+                planet_preprocess::build_rasters(
+                    &e,
+                    colour.as_deref(),
+                    &out,
+                    &RasterOptions {
+                        max_level,
+                        max_memory_mb: max_memory,
+                        threads,
+                        quiet,
+                    },
+                )
+                .with_context(|| format!("building {}", out.display()))?
+            };
+            println!(
+                "wrote {}: {} bytes, {} elevation + {} colour records, max level {}/{}, {} samples in {:.2} s ({:.1} M samples/s)",
+                out.display(),
+                stats.file_bytes,
+                stats.elevation_records,
+                stats.colour_records,
+                stats.max_level,
+                stats.colour_max_level,
+                stats.elevation_samples + stats.colour_samples,
+                stats.seconds,
+                stats.samples_per_second() / 1e6
+            );
+        }
+        Cmd::Verify { db: path } => match db::verify(&path) {
+            Ok(r) => println!(
+                "OK: {} elevation records, {} colour records, max level {}",
+                r.elevation_records, r.colour_records, r.max_level
+            ),
+            Err(e) => {
+                println!("FAILED: {:#}", anyhow::Error::from(e));
+                std::process::exit(1);
+            }
+        },
+        Cmd::Inspect { db: path, json } => {
+            let r = db::inspect(&path).with_context(|| format!("inspecting {}", path.display()))?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print_inspect(&r);
+            }
+        }
+        Cmd::Sample { db: path, lat, lon } => {
+            let s = db::Sampler::open(&path)?;
+            let r = s.sample(lat, lon)?;
+            println!("leaf {:?}", r.leaf);
+            println!("{}", r.metres);
+        }
+    }
+    Ok(())
+}
+
+fn print_inspect(r: &db::InspectReport) {
+    println!("file: {} bytes", r.file_bytes);
+    println!("datum: {}", r.datum);
+    println!(
+        "elevation: scale {} m/unit, offset {} m, range {} .. {} m",
+        r.elevation_scale, r.elevation_offset, r.min_elevation, r.max_elevation
+    );
+    println!("description: {}", r.description);
+    let mut trees = vec![("elevation", &r.elevation)];
+    if let Some(c) = &r.colour {
+        trees.push(("colour", c));
+    }
+    for (name, t) in trees {
+        println!(
+            "{name} tree: width {}, max level {}, {} records, {} bytes, {} samples, raw {} bytes, ratio {:.1} %",
+            t.block_width,
+            t.max_level,
+            t.records,
+            t.bytes,
+            t.samples,
+            t.raw_bytes,
+            100.0 * t.compression_ratio
+        );
+        for l in &t.levels {
+            println!(
+                "  level {:2}: {:8} records {:12} bytes",
+                l.level, l.records, l.bytes
+            );
+        }
+    }
+}

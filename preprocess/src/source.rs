@@ -1,0 +1,340 @@
+//! Raster sources re-projected onto cube-face blocks (thesis §5.2, Eq. 5.1,
+//! Alg. 5.1; thesis-notes §9.7).
+//!
+//! Instead of re-projecting whole face maps to disk first (Alg. 5.1), each
+//! leaf block samples its grid straight from the sources: elevation sample
+//! `(i, j)` of block `(face, L, x, y)` is at `s = (x·W + i)/(W·2^L)`,
+//! `t = (y·W + j)/(W·2^L)`, mapped to latitude/longitude by the inverse
+//! equal-angle map (with the erratum of Eq. 5.1 fixed in `planet_core::cube`).
+//!
+//! - Several elevation rasters stack: the finest one covering a point wins,
+//!   with bilinear interpolation inside it. Longitude wraps at the
+//!   antimeridian for global rasters; rows clamp at the poles.
+//! - Voids (GDAL no-data, and -32768 in int16 SRTM) are never stored: a void
+//!   pixel takes the value of the next coarser raster at its position (e.g.
+//!   ETOPO5 under SRTM, as the thesis filled SRTM gaps from BMNG, §5.1), or,
+//!   with none under it, the mean of the nearest ring of valid neighbours.
+//! - Colour comes from one RGB8 (or grey) raster, sampled bilinearly at texel
+//!   centres `(x·Wc + i + ½)/(Wc·2^L)`.
+
+use crate::build::GridSource;
+use crate::error::{BuildError, GeoError};
+use crate::geotiff::GeoTiff;
+use planet_core::cube::{plane_from_angle, sample_coord};
+use planet_core::lod::Rgb;
+use planet_core::{BlockId, Datum, FaceCoord};
+use std::path::Path;
+
+/// Elevation block width used by this preprocessor.
+pub const ELEVATION_WIDTH: usize = 64;
+/// Colour block width used by this preprocessor.
+pub const COLOUR_WIDTH: usize = 128;
+
+/// The tree level whose sample spacing matches a raster: the smallest `L`
+/// with `w·2^L ≥ cells per 90°`.
+pub fn level_for(cells_per_quarter: f64, w: usize) -> u8 {
+    let mut l = 0u8;
+    while (w as f64) * 2f64.powi(l as i32) < cells_per_quarter - 1e-6 && l < 30 {
+        l += 1;
+    }
+    l
+}
+
+/// One elevation raster of the stack.
+pub struct Layer {
+    /// The raster.
+    pub tiff: GeoTiff,
+    /// Its tree level (elevation width 64).
+    pub level: u8,
+}
+
+/// A stack of elevation rasters, coarsest first.
+pub struct ElevationStack {
+    /// Layers sorted by increasing level (coarse to fine).
+    pub layers: Vec<Layer>,
+}
+
+impl ElevationStack {
+    /// Open elevation rasters; the cache bound is shared between them.
+    pub fn open(paths: &[&Path], cache_bytes: usize) -> Result<ElevationStack, GeoError> {
+        let per = (cache_bytes / paths.len().max(1)).max(1 << 20);
+        let mut layers = Vec::new();
+        for p in paths {
+            let tiff = GeoTiff::open(p, per)?;
+            if !tiff.kind.is_elevation() {
+                return Err(GeoError::Role {
+                    path: p.to_path_buf(),
+                    what: format!("{:?} is not an elevation sample type", tiff.kind),
+                });
+            }
+            let level = level_for(tiff.cells_per_quarter(), ELEVATION_WIDTH);
+            layers.push(Layer { tiff, level });
+        }
+        layers.sort_by(|a, b| {
+            a.tiff
+                .dx
+                .partial_cmp(&b.tiff.dx)
+                .unwrap_or(std::cmp::Ordering::Equal)
+                .reverse()
+        });
+        Ok(ElevationStack { layers })
+    }
+
+    /// Elevation in metres at (lat, lon) degrees: the finest covering layer,
+    /// bilinear, voids filled. 0 where nothing covers the point.
+    pub fn sample(&self, lat: f64, lon: f64) -> Result<f64, GeoError> {
+        for idx in (0..self.layers.len()).rev() {
+            if self.layers[idx].tiff.covers(lat, lon) {
+                return self.sample_layer(idx, lat, lon);
+            }
+        }
+        Ok(0.0)
+    }
+
+    /// Bilinear sample of layer `idx` (voids filled).
+    pub fn sample_layer(&self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
+        let t = &self.layers[idx].tiff;
+        let (c, r) = t.pixel_of(lat, lon);
+        let (c0, r0) = (c.floor(), r.floor());
+        let (fc, fr) = (c - c0, r - r0);
+        let (c0, r0) = (c0 as i64, r0 as i64);
+        let mut v = [0f64; 4];
+        for (k, (dc, dr)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
+            v[k] = self.pixel(idx, c0 + dc, r0 + dr)?;
+        }
+        let top = v[0] + (v[1] - v[0]) * fc;
+        let bot = v[2] + (v[3] - v[2]) * fc;
+        Ok(top + (bot - top) * fr)
+    }
+
+    /// Value of one pixel of layer `idx`, voids filled.
+    pub fn pixel(&self, idx: usize, col: i64, row: i64) -> Result<f64, GeoError> {
+        let t = &self.layers[idx].tiff;
+        let v = t.elevation(col, row)?;
+        if !v.is_nan() {
+            return Ok(v as f64);
+        }
+        let (lat, lon) = t.position_of(col, row);
+        for j in (0..idx).rev() {
+            if self.layers[j].tiff.covers(lat, lon) {
+                return self.sample_layer(j, lat, lon);
+            }
+        }
+        // No coarser source: mean of the nearest ring of valid neighbours.
+        for radius in 1..=64i64 {
+            let (mut sum, mut n) = (0.0, 0u32);
+            for d in -radius..=radius {
+                for (dc, dr) in [(d, -radius), (d, radius), (-radius, d), (radius, d)] {
+                    let w = t.elevation(col + dc, row + dr)?;
+                    if !w.is_nan() {
+                        sum += w as f64;
+                        n += 1;
+                    }
+                }
+            }
+            if n > 0 {
+                return Ok(sum / n as f64);
+            }
+        }
+        Ok(0.0)
+    }
+
+    /// The finest level of any layer whose footprint intersects the block.
+    pub fn level_needed(&self, b: BlockId) -> u8 {
+        let mut best = 0;
+        for l in &self.layers {
+            if l.level > best && footprint_intersects(&l.tiff, b) {
+                best = l.level;
+            }
+        }
+        best
+    }
+}
+
+/// Whether a raster's footprint intersects a block (sampled test: block
+/// points inside the raster, or raster points inside the block).
+pub fn footprint_intersects(t: &GeoTiff, b: BlockId) -> bool {
+    if t.is_global() {
+        return true;
+    }
+    let (s0, t0, s1, t1) = b.extent();
+    let n = 16;
+    for j in 0..=n {
+        for i in 0..=n {
+            let fc = FaceCoord {
+                face: b.face,
+                s: s0 + (s1 - s0) * i as f64 / n as f64,
+                t: t0 + (t1 - t0) * j as f64 / n as f64,
+            };
+            let (la, lo) = fc.to_lat_lon();
+            if t.covers(la.to_degrees(), lo.to_degrees()) {
+                return true;
+            }
+        }
+    }
+    let (la0, la1, lo0, lo1) = t.bounds();
+    for j in 0..=n {
+        for i in 0..=n {
+            let la = la0 + (la1 - la0) * j as f64 / n as f64;
+            let lo = lo0 + (lo1 - lo0) * i as f64 / n as f64;
+            let fc = FaceCoord::from_lat_lon(la.to_radians(), lo.to_radians());
+            if fc.face == b.face && fc.s >= s0 && fc.s <= s1 && fc.t >= t0 && fc.t <= t1 {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// Face coordinates of the elevation samples of a block, per column/row.
+pub fn elevation_coords(b: BlockId, w: usize) -> Vec<f64> {
+    let n = (w as u64) << b.level;
+    (0..=w as u64)
+        .map(|i| sample_coord(b.x as u64 * w as u64 + i, n))
+        .collect()
+}
+
+/// Latitude/longitude (radians) of elevation sample `(i, j)` of a block.
+pub fn elevation_sample_lat_lon(b: BlockId, w: usize, i: usize, j: usize) -> (f64, f64) {
+    let n = (w as u64) << b.level;
+    FaceCoord {
+        face: b.face,
+        s: sample_coord(b.x as u64 * w as u64 + i as u64, n),
+        t: sample_coord(b.y as u64 * w as u64 + j as u64, n),
+    }
+    .to_lat_lon()
+}
+
+/// Latitude/longitude (radians) of colour texel centre `(i, j)` of a block.
+pub fn colour_texel_lat_lon(b: BlockId, w: usize, i: usize, j: usize) -> (f64, f64) {
+    let n = (w as f64) * 2f64.powi(b.level as i32);
+    FaceCoord {
+        face: b.face,
+        s: (b.x as f64 * w as f64 + i as f64 + 0.5) / n,
+        t: (b.y as f64 * w as f64 + j as f64 + 0.5) / n,
+    }
+    .to_lat_lon()
+}
+
+/// Gnomonic plane coordinates of a block's elevation sample columns.
+pub fn plane_coords(coords: &[f64]) -> Vec<f64> {
+    coords.iter().map(|&s| plane_from_angle(s)).collect()
+}
+
+/// A single colour raster.
+pub struct ColourSource {
+    /// The raster.
+    pub tiff: GeoTiff,
+    /// Its tree level (colour width 128).
+    pub level: u8,
+}
+
+impl ColourSource {
+    /// Open a colour raster.
+    pub fn open(path: &Path, cache_bytes: usize) -> Result<ColourSource, GeoError> {
+        let tiff = GeoTiff::open(path, cache_bytes.max(1 << 20))?;
+        if tiff.kind.is_elevation() {
+            return Err(GeoError::Role {
+                path: path.to_path_buf(),
+                what: format!("{:?} is not a colour sample type", tiff.kind),
+            });
+        }
+        let level = level_for(tiff.cells_per_quarter(), COLOUR_WIDTH);
+        Ok(ColourSource { tiff, level })
+    }
+
+    /// Bilinear colour at (lat, lon) degrees.
+    pub fn sample(&self, lat: f64, lon: f64) -> Result<Rgb, GeoError> {
+        let (c, r) = self.tiff.pixel_of(lat, lon);
+        let (c0, r0) = (c.floor(), r.floor());
+        let (fc, fr) = (c - c0, r - r0);
+        let (c0, r0) = (c0 as i64, r0 as i64);
+        let p = [
+            self.tiff.colour(c0, r0)?,
+            self.tiff.colour(c0 + 1, r0)?,
+            self.tiff.colour(c0, r0 + 1)?,
+            self.tiff.colour(c0 + 1, r0 + 1)?,
+        ];
+        let mut out = [0u8; 3];
+        for ch in 0..3 {
+            let top = p[0][ch] as f64 + (p[1][ch] as f64 - p[0][ch] as f64) * fc;
+            let bot = p[2][ch] as f64 + (p[3][ch] as f64 - p[2][ch] as f64) * fc;
+            out[ch] = (top + (bot - top) * fr).round().clamp(0.0, 255.0) as u8;
+        }
+        Ok(out)
+    }
+}
+
+/// Real-data source: an elevation stack and an optional colour raster.
+pub struct RasterSource {
+    /// Elevation rasters.
+    pub elevation: ElevationStack,
+    /// Colour raster.
+    pub colour: Option<ColourSource>,
+    /// Metres per stored unit.
+    pub scale: f64,
+}
+
+/// Quantise metres to stored units.
+#[inline]
+pub fn quantise(m: f64, scale: f64) -> i16 {
+    (m / scale)
+        .round()
+        .clamp(i16::MIN as f64 + 1.0, i16::MAX as f64) as i16
+}
+
+impl GridSource for RasterSource {
+    fn elevation_leaf(&self, b: BlockId, out: &mut [i16]) -> Result<(), BuildError> {
+        let w = ELEVATION_WIDTH;
+        for j in 0..=w {
+            for i in 0..=w {
+                let (la, lo) = elevation_sample_lat_lon(b, w, i, j);
+                let m = self.elevation.sample(la.to_degrees(), lo.to_degrees())?;
+                out[j * (w + 1) + i] = quantise(m, self.scale);
+            }
+        }
+        Ok(())
+    }
+
+    fn colour_leaf(&self, b: BlockId, _elevation: &[i16]) -> Result<Vec<Rgb>, BuildError> {
+        let w = COLOUR_WIDTH;
+        let Some(c) = &self.colour else {
+            return Ok(vec![[0; 3]; w * w]);
+        };
+        let mut out = Vec::with_capacity(w * w);
+        for j in 0..w {
+            for i in 0..w {
+                let (la, lo) = colour_texel_lat_lon(b, w, i, j);
+                out.push(c.sample(la.to_degrees(), lo.to_degrees())?);
+            }
+        }
+        Ok(out)
+    }
+
+    fn datum(&self) -> Datum {
+        Datum::WGS84
+    }
+
+    fn elevation_scale(&self) -> f64 {
+        self.scale
+    }
+
+    fn has_colour(&self) -> bool {
+        self.colour.is_some()
+    }
+
+    fn description(&self) -> String {
+        let mut s = String::from("planet-build from rasters: elevation");
+        for l in &self.elevation.layers {
+            s.push_str(&format!(" {} (L{})", l.tiff.path().display(), l.level));
+        }
+        if let Some(c) = &self.colour {
+            s.push_str(&format!(
+                "; colour {} (L{})",
+                c.tiff.path().display(),
+                c.level
+            ));
+        }
+        s
+    }
+}

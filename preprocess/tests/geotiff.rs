@@ -1,0 +1,205 @@
+//! GeoTIFF reader on small files written with the `tiff` encoder.
+
+use planet_preprocess::geotiff::{GeoTiff, SampleKind};
+use planet_preprocess::source::ElevationStack;
+use planet_preprocess::GeoError;
+use std::fs::File;
+use std::path::Path;
+use tiff::encoder::{colortype, TiffEncoder};
+use tiff::tags::Tag;
+
+/// Geo tags: pixel scale 1°, tie point (0,0) → (10°E, 50°N).
+fn geo_keys(model: u16, raster: u16, extra: &[u16]) -> Vec<u16> {
+    let n = 2 + extra.len() as u16 / 4;
+    let mut k = vec![1, 1, 0, n, 1024, 0, 1, model, 1025, 0, 1, raster];
+    k.extend_from_slice(extra);
+    k
+}
+
+macro_rules! write_tiff {
+    ($path:expr, $ct:ty, $w:expr, $h:expr, $data:expr, $keys:expr, $nodata:expr) => {{
+        let mut enc = TiffEncoder::new(File::create($path).unwrap()).unwrap();
+        let mut img = enc.new_image::<$ct>($w, $h).unwrap();
+        let d = img.encoder();
+        d.write_tag(Tag::ModelPixelScaleTag, &[1.0f64, 1.0, 0.0][..])
+            .unwrap();
+        d.write_tag(
+            Tag::ModelTiepointTag,
+            &[0.0f64, 0.0, 0.0, 10.0, 50.0, 0.0][..],
+        )
+        .unwrap();
+        d.write_tag(Tag::GeoKeyDirectoryTag, &$keys[..]).unwrap();
+        if let Some(nd) = $nodata {
+            d.write_tag(Tag::GdalNodata, nd).unwrap();
+        }
+        img.write_data($data).unwrap();
+    }};
+}
+
+#[test]
+fn int16_with_nodata_pixel_is_area() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("a.tif");
+    // 4 × 3, one void (-9999) at (1, 1).
+    let data: Vec<i16> = vec![100, 110, 120, 130, 200, -9999, 220, 230, 300, 310, 320, 330];
+    write_tiff!(
+        &p,
+        colortype::GrayI16,
+        4,
+        3,
+        &data,
+        geo_keys(2, 1, &[2048, 0, 1, 4326]),
+        Some("-9999")
+    );
+    let t = GeoTiff::open(&p, 1 << 20).unwrap();
+    assert_eq!(t.kind, SampleKind::I16);
+    assert_eq!((t.width, t.height), (4, 3));
+    assert!(!t.pixel_is_point);
+    assert_eq!(t.nodata, Some(-9999.0));
+    // Pixel-is-area: pixel (0,0)'s value is at its centre (10.5°E, 49.5°N).
+    assert_eq!((t.lon0, t.lat0), (10.5, 49.5));
+    assert!(t.elevation(1, 1).unwrap().is_nan());
+    assert_eq!(t.elevation(2, 1).unwrap(), 220.0);
+    let s = ElevationStack::open(&[p.as_path()], 1 << 20).unwrap();
+    assert_eq!(s.sample(49.5, 10.5).unwrap(), 100.0);
+    // Bilinear between pixel centres.
+    assert!((s.sample(49.5, 11.0).unwrap() - 105.0).abs() < 1e-9);
+    // The void is filled from its valid neighbours (mean of the ring), never -9999.
+    let v = s.sample(48.5, 11.5).unwrap();
+    let ring = [100.0, 110.0, 120.0, 200.0, 220.0, 300.0, 310.0, 320.0];
+    let mean: f64 = ring.iter().sum::<f64>() / 8.0;
+    assert!((v - mean).abs() < 1e-9, "{v} vs {mean}");
+}
+
+#[test]
+fn srtm_minus_32768_is_void_and_filled_from_coarser() {
+    let dir = tempfile::tempdir().unwrap();
+    let fine = dir.path().join("fine.tif");
+    let coarse = dir.path().join("coarse.tif");
+    let data: Vec<i16> = vec![10, 10, 10, 10, -32768, 10, 10, 10, 10];
+    write_tiff!(
+        &fine,
+        colortype::GrayI16,
+        3,
+        3,
+        &data,
+        geo_keys(2, 1, &[]),
+        None::<&str>
+    );
+    // Coarser: 2 × 2 pixels of 2°, constant 500 m.
+    let mut enc = TiffEncoder::new(File::create(&coarse).unwrap()).unwrap();
+    let mut img = enc.new_image::<colortype::GrayI16>(6, 6).unwrap();
+    let d = img.encoder();
+    d.write_tag(Tag::ModelPixelScaleTag, &[2.0f64, 2.0, 0.0][..])
+        .unwrap();
+    d.write_tag(
+        Tag::ModelTiepointTag,
+        &[0.0f64, 0.0, 0.0, 6.0, 54.0, 0.0][..],
+    )
+    .unwrap();
+    d.write_tag(Tag::GeoKeyDirectoryTag, &geo_keys(2, 1, &[])[..])
+        .unwrap();
+    img.write_data(&[500i16; 36]).unwrap();
+    let s = ElevationStack::open(&[fine.as_path(), coarse.as_path()], 1 << 20).unwrap();
+    assert_eq!(s.layers.len(), 2);
+    // Centre of the void pixel: the coarse value, not -32768.
+    assert_eq!(s.sample(48.5, 11.5).unwrap(), 500.0);
+    assert_eq!(s.sample(49.5, 10.5).unwrap(), 10.0);
+}
+
+#[test]
+fn float32_pixel_is_point() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("f.tif");
+    let data: Vec<f32> = vec![1.5, 2.5, 3.5, 4.5];
+    write_tiff!(
+        &p,
+        colortype::Gray32Float,
+        2,
+        2,
+        &data,
+        geo_keys(2, 2, &[]),
+        None::<&str>
+    );
+    let t = GeoTiff::open(&p, 1 << 20).unwrap();
+    assert_eq!(t.kind, SampleKind::F32);
+    assert!(t.pixel_is_point);
+    // Pixel-is-point: pixel (0,0)'s value is exactly at the tie point.
+    assert_eq!((t.lon0, t.lat0), (10.0, 50.0));
+    let s = ElevationStack::open(&[p.as_path()], 1 << 20).unwrap();
+    assert_eq!(s.sample(50.0, 10.0).unwrap(), 1.5);
+    assert!((s.sample(49.5, 10.5).unwrap() - 3.0).abs() < 1e-9);
+}
+
+#[test]
+fn projected_crs_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("utm.tif");
+    write_tiff!(
+        &p,
+        colortype::GrayI16,
+        2,
+        2,
+        &[0i16; 4],
+        geo_keys(1, 1, &[3072, 0, 1, 32610]),
+        None::<&str>
+    );
+    match GeoTiff::open(&p, 1 << 20) {
+        Err(e @ GeoError::WrongCrs { .. }) => assert!(e.to_string().contains("wrong CRS")),
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("projected CRS accepted"),
+    }
+    let q = dir.path().join("nad27.tif");
+    write_tiff!(
+        &q,
+        colortype::GrayI16,
+        2,
+        2,
+        &[0i16; 4],
+        geo_keys(2, 1, &[2048, 0, 1, 4267]),
+        None::<&str>
+    );
+    assert!(matches!(
+        GeoTiff::open(&q, 1 << 20),
+        Err(GeoError::WrongCrs { .. })
+    ));
+}
+
+#[test]
+fn unsupported_sample_type_and_missing_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("u32.tif");
+    write_tiff!(
+        &p,
+        colortype::Gray32,
+        2,
+        2,
+        &[0u32; 4],
+        geo_keys(2, 1, &[]),
+        None::<&str>
+    );
+    match GeoTiff::open(&p, 1 << 20) {
+        Err(e @ GeoError::UnsupportedSampleType { .. }) => {
+            assert!(e.to_string().contains("unsupported sample type"))
+        }
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("u32 accepted"),
+    }
+    // Colour used as elevation is refused too.
+    let c = dir.path().join("rgb.tif");
+    write_tiff!(
+        &c,
+        colortype::RGB8,
+        2,
+        2,
+        &[0u8; 12],
+        geo_keys(2, 1, &[]),
+        None::<&str>
+    );
+    assert!(GeoTiff::open(&c, 1 << 20).is_ok());
+    assert!(ElevationStack::open(&[c.as_path()], 1 << 20).is_err());
+    assert!(matches!(
+        GeoTiff::open(Path::new("/nonexistent/x.tif"), 1 << 20),
+        Err(GeoError::Open { .. })
+    ));
+}

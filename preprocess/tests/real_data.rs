@@ -1,0 +1,168 @@
+//! Real data (../shared/data): ETOPO5 + Blue Marble + Rainier and Everest
+//! SRTM insets. Skipped with a note when the folder is absent.
+//!
+//! Agreement bound, derived: the database value at a point P is the bilinear
+//! interpolation of the 4 samples at the corners of the leaf cell holding P,
+//! and each of those is the source's bilinear value at that corner, rounded to
+//! 1 m. Every bilinear value is a convex combination of source pixels, so both
+//! the database value and the source's own bilinear value at P lie within
+//! [min, max] of the source pixels supporting P and the 4 corners. Hence
+//! |db − src| ≤ (max − min of those pixels) + 0.5 m: the local relief within
+//! about one source cell. Points whose support holds a void are excepted.
+
+use planet_core::{BlockId, Edge};
+use planet_preprocess::db::{verify, Sampler};
+use planet_preprocess::plan::{leaf_containing, MAX_GRADE};
+use planet_preprocess::source::{elevation_sample_lat_lon, ElevationStack};
+use planet_preprocess::{build_rasters, RasterOptions};
+use rand::{Rng, SeedableRng};
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+
+fn data_dir() -> Option<PathBuf> {
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    d.join("earth_etopo5_30arcmin.tif").exists().then_some(d)
+}
+
+#[test]
+fn real_planet_with_insets() {
+    let Some(d) = data_dir() else {
+        eprintln!("note: ../shared/data not found, real-data test skipped");
+        return;
+    };
+    let etopo = d.join("earth_etopo5_30arcmin.tif");
+    let rainier = d.join("mt_rainier_90m.tif");
+    let everest = d.join("mt_everest_90m.tif");
+    let bm = d.join("earth_bluemarble_2048x1024.tif");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("earth.db");
+    let stats = build_rasters(
+        &[etopo.as_path(), rainier.as_path(), everest.as_path()],
+        Some(bm.as_path()),
+        &out,
+        &RasterOptions {
+            max_memory_mb: 256,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(stats.max_level, 11);
+    assert_eq!(stats.colour_max_level, 2);
+    let rep = verify(&out).unwrap();
+    assert_eq!(rep.elevation_records, stats.elevation_records);
+
+    let sampler = Sampler::open(&out).unwrap();
+    // Tree shape: collect blocks, check depth by region and grading.
+    let mut blocks = HashSet::new();
+    sampler
+        .for_each_elevation_block(|b, _| {
+            blocks.insert(b);
+        })
+        .unwrap();
+    let split: HashSet<BlockId> = blocks
+        .iter()
+        .filter(|b| blocks.contains(&b.child(0)))
+        .copied()
+        .collect();
+    let mut leaves = 0;
+    for b in blocks.iter().filter(|b| !split.contains(b)) {
+        leaves += 1;
+        for e in Edge::ALL {
+            let (n, _) = b.neighbour(e);
+            if let Some(c) = leaf_containing(&split, n) {
+                assert!(b.level <= c.level + MAX_GRADE, "{b:?} next to {c:?}");
+            }
+        }
+    }
+    assert!(leaves > 100);
+    let mut cache = HashMap::new();
+    assert_eq!(
+        sampler
+            .sample_cached(0.0, -30.0, &mut cache)
+            .unwrap()
+            .leaf
+            .level,
+        2
+    );
+    assert_eq!(
+        sampler
+            .sample_cached(46.85, -121.76, &mut cache)
+            .unwrap()
+            .leaf
+            .level,
+        11
+    );
+    assert_eq!(
+        sampler
+            .sample_cached(27.99, 86.93, &mut cache)
+            .unwrap()
+            .leaf
+            .level,
+        11
+    );
+
+    // Agreement with the source tiles.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    for tile in [&rainier, &everest] {
+        let src = ElevationStack::open(&[tile.as_path()], 64 << 20).unwrap();
+        let t = &src.layers[0].tiff;
+        let (la0, la1, lo0, lo1) = t.bounds();
+        let (mut n, mut voids, mut sum_abs, mut worst_excess) = (0, 0, 0.0, f64::MIN);
+        for _ in 0..10_000 {
+            let lat = rng.random_range(la0 + 0.01..la1 - 0.01);
+            let lon = rng.random_range(lo0 + 0.01..lo1 - 0.01);
+            let r = sampler.sample_cached(lat, lon, &mut cache).unwrap();
+            assert_eq!(r.leaf.level, 11);
+            // Support: P's and the 4 leaf-cell corners' bilinear pixels.
+            let w = 64usize;
+            let fc = planet_core::FaceCoord::from_lat_lon(lat.to_radians(), lon.to_radians());
+            let nb = (1u64 << r.leaf.level) as f64;
+            let gx = ((fc.s * nb - r.leaf.x as f64) * w as f64).clamp(0.0, w as f64);
+            let gy = ((fc.t * nb - r.leaf.y as f64) * w as f64).clamp(0.0, w as f64);
+            let (x0, y0) = (
+                (gx.floor() as usize).min(w - 1),
+                (gy.floor() as usize).min(w - 1),
+            );
+            let mut pts = vec![(lat, lon)];
+            for (i, j) in [(x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)] {
+                let (a, o) = elevation_sample_lat_lon(r.leaf, w, i, j);
+                pts.push((a.to_degrees(), o.to_degrees()));
+            }
+            let (mut lo, mut hi, mut void) = (f64::MAX, f64::MIN, false);
+            for (a, o) in &pts {
+                let (c, rr) = t.pixel_of(*a, *o);
+                let (c, rr) = (c.floor() as i64, rr.floor() as i64);
+                for (dc, dr) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let v = t.elevation(c + dc, rr + dr).unwrap() as f64;
+                    if v.is_nan() {
+                        void = true;
+                    }
+                    lo = lo.min(v);
+                    hi = hi.max(v);
+                }
+            }
+            if void {
+                voids += 1;
+                continue;
+            }
+            let truth = src.sample(lat, lon).unwrap();
+            let diff = (r.metres - truth).abs();
+            let bound = hi - lo + 0.5 + 1e-6;
+            assert!(
+                diff <= bound,
+                "{lat} {lon}: db {} src {truth} bound {bound}",
+                r.metres
+            );
+            worst_excess = worst_excess.max(diff - (hi - lo));
+            sum_abs += diff;
+            n += 1;
+        }
+        let mean = sum_abs / n as f64;
+        eprintln!(
+            "{}: {n} points, {voids} near voids, mean |db - src| = {mean:.2} m, worst diff - relief = {worst_excess:.2} m",
+            tile.display()
+        );
+        assert!(n > 5_000);
+        assert!(mean < 5.0, "mean difference {mean} m");
+    }
+}
