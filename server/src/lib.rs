@@ -1,1 +1,418 @@
-//! placeholder
+//! `planet-server`: multi-tenant QUIC server of memory-mapped planet
+//! databases.
+//!
+//! - [`config`]: TOML configuration and the checked [`ServerConfig`].
+//! - [`db`]: validated, memory-mapped databases and their reload.
+//! - [`metrics`]: Prometheus metrics and the `/metrics` `/healthz` `/readyz`
+//!   HTTP server.
+//! - [`tls`]: certificates (PEM or generated), rustls/ring, ALPN, no 0-RTT.
+//! - [`limit`]: per-tenant bandwidth token bucket.
+//! - `conn` (private): per-connection protocol handling.
+//!
+//! Start a server in-process with [`Server::start`]; the binary
+//! (`src/main.rs`) adds the CLI, logging and signals.
+
+pub mod config;
+mod conn;
+pub mod db;
+pub mod limit;
+pub mod metrics;
+pub mod tls;
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use planet_protocol::quic;
+use quinn::VarInt;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+pub use config::{ConfigError, DatabaseConfig, ServerConfig, TenantConfig, TlsSource};
+pub use db::{DbError, ReloadOutcome};
+pub use metrics::Metrics;
+
+/// Why the server could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    /// Invalid configuration.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// A database file cannot be served.
+    #[error(transparent)]
+    Database(#[from] DbError),
+    /// Certificate or TLS configuration problem.
+    #[error(transparent)]
+    Tls(#[from] tls::TlsError),
+    /// Binding a socket failed.
+    #[error("cannot bind {what} on {addr}: {source}")]
+    Bind {
+        /// `QUIC` or `metrics`.
+        what: &'static str,
+        /// The address.
+        addr: SocketAddr,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// Metrics registration failed (a bug).
+    #[error("metrics: {0}")]
+    Metrics(#[from] prometheus::Error),
+}
+
+/// A tenant at run time.
+pub(crate) struct TenantRt {
+    pub(crate) cfg: TenantConfig,
+    token_hash: [u8; 32],
+    pub(crate) bucket: Option<limit::TokenBucket>,
+}
+
+fn sha256(bytes: &[u8]) -> [u8; 32] {
+    let d = ring::digest::digest(&ring::digest::SHA256, bytes);
+    let mut out = [0u8; 32];
+    out.copy_from_slice(d.as_ref());
+    out
+}
+
+/// Constant-time comparison of a presented token with a stored token hash.
+/// Both sides are hashed first, so neither the content nor the length of the
+/// stored token leaks through timing.
+pub(crate) fn ct_eq_token(stored_hash: &[u8; 32], presented: &str) -> bool {
+    let h = sha256(presented.as_bytes());
+    let mut diff = 0u8;
+    for (a, b) in stored_hash.iter().zip(h.iter()) {
+        diff |= a ^ b;
+    }
+    std::hint::black_box(diff) == 0
+}
+
+impl TenantRt {
+    pub(crate) fn token_matches(&self, presented: &str) -> bool {
+        ct_eq_token(&self.token_hash, presented)
+    }
+}
+
+/// State shared by the accept loop and every connection.
+pub(crate) struct Shared {
+    pub(crate) cfg: ServerConfig,
+    pub(crate) dbs: HashMap<String, db::DbSlot>,
+    pub(crate) tenants: HashMap<String, Arc<TenantRt>>,
+    pub(crate) dummy_token_hash: [u8; 32],
+    pub(crate) metrics: Metrics,
+    http: Arc<metrics::HttpState>,
+    active: AtomicUsize,
+}
+
+impl Shared {
+    fn reload(&self) -> Vec<(String, ReloadOutcome)> {
+        let mut out = Vec::new();
+        for (name, slot) in &self.dbs {
+            let outcome = slot.reload();
+            match &outcome {
+                ReloadOutcome::Unchanged => {
+                    tracing::info!(database = %name, "reload: file unchanged")
+                }
+                ReloadOutcome::Reloaded => {
+                    let size = slot.current().len();
+                    tracing::info!(database = %name, path = %slot.path.display(), size, "reload: new file mapped for new sessions");
+                    self.metrics
+                        .database_reloads_total
+                        .with_label_values(&[name])
+                        .inc();
+                    self.metrics
+                        .database_size_bytes
+                        .with_label_values(&[name])
+                        .set(i64::try_from(size).unwrap_or(i64::MAX));
+                }
+                ReloadOutcome::Failed(e) => {
+                    tracing::error!(database = %name, error = %e, "reload failed: keeping the previous file")
+                }
+            }
+            out.push((name.clone(), outcome));
+        }
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        out
+    }
+}
+
+/// Decrements the connection gauges when a connection task ends.
+struct ActiveGuard(Arc<Shared>);
+
+impl Drop for ActiveGuard {
+    fn drop(&mut self) {
+        self.0.active.fetch_sub(1, Ordering::AcqRel);
+        self.0.metrics.connections_active.dec();
+    }
+}
+
+/// Entry point: [`Server::start`].
+pub struct Server;
+
+/// A running server.
+pub struct ServerHandle {
+    local_addr: SocketAddr,
+    metrics_addr: Option<SocketAddr>,
+    fingerprint: String,
+    cert_der: Vec<u8>,
+    shared: Arc<Shared>,
+    endpoint: quinn::Endpoint,
+    shutdown_tx: watch::Sender<bool>,
+    accept_task: JoinHandle<()>,
+    http_stop: watch::Sender<bool>,
+    http_task: Option<JoinHandle<()>>,
+}
+
+impl Server {
+    /// Opens and validates the databases, binds the QUIC endpoint and the
+    /// metrics listener, and starts serving. Must be called inside a tokio
+    /// runtime.
+    pub async fn start(config: ServerConfig) -> Result<ServerHandle, ServerError> {
+        tls::install_crypto_provider();
+        config.validate()?;
+        let metrics = Metrics::new()?;
+        let mut dbs = HashMap::new();
+        for d in &config.databases {
+            let slot = db::DbSlot::open(&d.name, &d.path)?;
+            let cur = slot.current();
+            tracing::info!(database = %d.name, path = %d.path.display(), size = cur.len(), "database mapped");
+            metrics.init_database(&d.name, cur.len());
+            dbs.insert(d.name.clone(), slot);
+        }
+        let tenants = config
+            .tenants
+            .iter()
+            .map(|t| {
+                let rt = TenantRt {
+                    cfg: t.clone(),
+                    token_hash: sha256(t.token.as_bytes()),
+                    bucket: (t.max_bytes_per_second > 0)
+                        .then(|| limit::TokenBucket::new(t.max_bytes_per_second)),
+                };
+                (t.name.clone(), Arc::new(rt))
+            })
+            .collect();
+
+        let ck = match &config.tls {
+            TlsSource::Pem { cert, key } => tls::CertKey::from_pem_files(cert, key)?,
+            TlsSource::DevCert => tls::CertKey::dev_cert()?,
+        };
+        let fingerprint = tls::sha256_hex(ck.leaf_der());
+        let cert_der = ck.leaf_der().to_vec();
+        let rustls_cfg = tls::rustls_server_config(&ck)?;
+        let quic_crypto = quinn::crypto::rustls::QuicServerConfig::try_from(rustls_cfg)
+            .map_err(|e| tls::TlsError::Config(e.to_string()))?;
+        let mut server_cfg = quinn::ServerConfig::with_crypto(Arc::new(quic_crypto));
+        server_cfg.transport_config(Arc::new(transport_config(&config)?));
+
+        let endpoint = quinn::Endpoint::server(server_cfg, config.listen).map_err(|source| {
+            ServerError::Bind {
+                what: "QUIC",
+                addr: config.listen,
+                source,
+            }
+        })?;
+        let local_addr = endpoint.local_addr().map_err(|source| ServerError::Bind {
+            what: "QUIC",
+            addr: config.listen,
+            source,
+        })?;
+
+        let http = Arc::new(metrics::HttpState {
+            metrics: metrics.clone(),
+            ready: std::sync::atomic::AtomicBool::new(false),
+        });
+        let (http_stop, http_stop_rx) = watch::channel(false);
+        let (metrics_addr, http_task) = match config.metrics {
+            Some(addr) => {
+                let listener = tokio::net::TcpListener::bind(addr)
+                    .await
+                    .map_err(|source| ServerError::Bind {
+                        what: "metrics",
+                        addr,
+                        source,
+                    })?;
+                let bound = listener.local_addr().map_err(|source| ServerError::Bind {
+                    what: "metrics",
+                    addr,
+                    source,
+                })?;
+                let task = tokio::spawn(metrics::serve_http(
+                    listener,
+                    Arc::clone(&http),
+                    http_stop_rx,
+                ));
+                (Some(bound), Some(task))
+            }
+            None => (None, None),
+        };
+
+        let shared = Arc::new(Shared {
+            cfg: config,
+            dbs,
+            tenants,
+            dummy_token_hash: sha256(b"planet-server: no such tenant"),
+            metrics,
+            http,
+            active: AtomicUsize::new(0),
+        });
+        let (shutdown_tx, shutdown_rx) = watch::channel(false);
+        let accept_task = tokio::spawn(accept_loop(
+            endpoint.clone(),
+            Arc::clone(&shared),
+            shutdown_rx,
+        ));
+        shared.http.ready.store(true, Ordering::Release);
+        tracing::info!(%local_addr, ?metrics_addr, %fingerprint, "planet-server listening");
+        Ok(ServerHandle {
+            local_addr,
+            metrics_addr,
+            fingerprint,
+            cert_der,
+            shared,
+            endpoint,
+            shutdown_tx,
+            accept_task,
+            http_stop,
+            http_task,
+        })
+    }
+}
+
+fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, ServerError> {
+    let mut t = quinn::TransportConfig::default();
+    let streams = cfg.max_tenant_in_flight() + 1 + conn::STREAM_MARGIN;
+    t.max_concurrent_bidi_streams(VarInt::from_u32(streams));
+    t.max_concurrent_uni_streams(VarInt::from_u32(0));
+    // Clients send 25-byte requests: small receive windows bound the memory
+    // a connection can make us buffer.
+    t.stream_receive_window(VarInt::from_u32(64 * 1024));
+    t.receive_window(VarInt::from_u32(256 * 1024));
+    t.send_window(8 * 1024 * 1024);
+    let idle = Duration::from_millis(u64::from(cfg.idle_timeout_ms));
+    let idle_timeout = quinn::IdleTimeout::try_from(idle).map_err(|_| {
+        ConfigError::Invalid(format!(
+            "idle_timeout_ms {} is too large",
+            cfg.idle_timeout_ms
+        ))
+    })?;
+    t.max_idle_timeout(Some(idle_timeout));
+    t.keep_alive_interval(Some((idle / 3).max(Duration::from_millis(500))));
+    Ok(t)
+}
+
+async fn accept_loop(
+    endpoint: quinn::Endpoint,
+    shared: Arc<Shared>,
+    mut shutdown: watch::Receiver<bool>,
+) {
+    let mut conns = tokio::task::JoinSet::new();
+    loop {
+        let incoming = tokio::select! {
+            i = endpoint.accept() => i,
+            Some(_) = conns.join_next(), if !conns.is_empty() => continue,
+            _ = shutdown.wait_for(|s| *s) => break,
+        };
+        let Some(incoming) = incoming else { break };
+        let shared = Arc::clone(&shared);
+        let shutdown = shutdown.clone();
+        conns.spawn(async move {
+            let peer = incoming.remote_address();
+            let over = shared.active.fetch_add(1, Ordering::AcqRel) >= shared.cfg.max_connections;
+            shared.metrics.connections_active.inc();
+            let guard = ActiveGuard(Arc::clone(&shared));
+            let conn = match incoming.await {
+                Ok(c) => c,
+                Err(e) => {
+                    tracing::debug!(%peer, error = %e, "handshake failed");
+                    return;
+                }
+            };
+            if over {
+                shared
+                    .metrics
+                    .connections_total
+                    .with_label_values(&["rejected"])
+                    .inc();
+                tracing::warn!(%peer, max = shared.cfg.max_connections, "connection limit reached, refusing");
+                conn.close(VarInt::from_u32(quic::CONNECTION_CLOSED_BUSY), b"server busy");
+                drop(guard);
+                return;
+            }
+            shared
+                .metrics
+                .connections_total
+                .with_label_values(&["accepted"])
+                .inc();
+            conn::serve_connection(conn, Arc::clone(&shared), shutdown).await;
+            drop(guard);
+        });
+    }
+    // Draining: refuse new connections, let the open ones finish.
+    endpoint.set_server_config(None);
+    let grace = shared.cfg.shutdown_grace + Duration::from_secs(3);
+    let drained =
+        tokio::time::timeout(grace, async { while conns.join_next().await.is_some() {} }).await;
+    if drained.is_err() {
+        tracing::warn!("connections still open after the grace period: closing them");
+        conns.shutdown().await;
+    }
+}
+
+impl ServerHandle {
+    /// The bound QUIC (UDP) address.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// The bound HTTP metrics address, if enabled.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
+    }
+
+    /// Lower-case hex SHA-256 of the server certificate (DER).
+    pub fn cert_fingerprint(&self) -> &str {
+        &self.fingerprint
+    }
+
+    /// DER of the server's end-entity certificate.
+    pub fn cert_der(&self) -> &[u8] {
+        &self.cert_der
+    }
+
+    /// The metrics (e.g. to read counters in tests without HTTP).
+    pub fn metrics(&self) -> &Metrics {
+        &self.shared.metrics
+    }
+
+    /// Number of open connections.
+    pub fn active_connections(&self) -> usize {
+        self.shared.active.load(Ordering::Acquire)
+    }
+
+    /// Re-opens every database path; changed files are mapped for new
+    /// sessions (what SIGHUP does).
+    pub fn reload(&self) -> Vec<(String, ReloadOutcome)> {
+        self.shared.reload()
+    }
+
+    /// Graceful shutdown: stop accepting, send `Goodbye{shutting_down}`,
+    /// let in-flight responses finish up to the grace period, close
+    /// connections with `CONNECTION_CLOSED_SHUTDOWN`, stop the metrics
+    /// server. `/readyz` answers 503 from the start of the drain.
+    pub async fn shutdown(self) {
+        self.shared.http.ready.store(false, Ordering::Release);
+        let _ = self.shutdown_tx.send(true);
+        let _ = self.accept_task.await;
+        self.endpoint.close(
+            VarInt::from_u32(quic::CONNECTION_CLOSED_SHUTDOWN),
+            b"shutting down",
+        );
+        let _ = tokio::time::timeout(Duration::from_secs(2), self.endpoint.wait_idle()).await;
+        let _ = self.http_stop.send(true);
+        if let Some(t) = self.http_task {
+            let _ = t.await;
+        }
+        tracing::info!("planet-server stopped");
+    }
+}

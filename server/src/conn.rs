@@ -1,0 +1,683 @@
+//! One QUIC connection: the control stream (handshake, cancel, goodbye) and
+//! the request streams (validation, pacing, checksum, zero-copy send).
+
+use std::cell::RefCell;
+use std::collections::HashSet;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use planet_core::format::{peek_record_len, record_checksum_ok, SUPERBLOCK_LEN};
+use planet_protocol::{
+    decode_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight, Limits,
+    LodRequest, ResponseHead, ServerEvent, ServerSession, Welcome, LOD_REQUEST_FRAME_LEN,
+};
+use quinn::{RecvStream, SendStream, VarInt};
+use tokio::sync::watch;
+use tokio::task::JoinSet;
+
+use crate::db::{MappedDb, RecordSlice};
+use crate::metrics::RequestOutcome;
+use crate::{Shared, TenantRt};
+
+/// How long a client has to open the control stream and send `Hello`.
+const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long a client has to send (and finish) a request on a request stream.
+const REQUEST_READ_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long we wait for the client to acknowledge a response.
+const ACK_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a fatal error / goodbye frame gets to reach the client.
+const FLUSH_TIMEOUT: Duration = Duration::from_millis(500);
+/// Streams allowed beyond `max_in_flight` (the control stream, plus slack
+/// so that an over-eager client gets `too_many_in_flight` heads rather than
+/// silently blocking in `open_bi`).
+pub(crate) const STREAM_MARGIN: u32 = 4;
+
+/// Labels used for requests that arrive before the handshake.
+const NO_TENANT: &str = "none";
+
+fn code(c: u32) -> VarInt {
+    VarInt::from_u32(c)
+}
+
+/// What request tasks need once the session is established.
+struct Established {
+    tenant: Arc<TenantRt>,
+    db: Arc<MappedDb>,
+    session: ServerSession,
+    in_flight: Mutex<InFlight>,
+}
+
+/// Per-connection state shared with request tasks.
+struct ConnCtx {
+    shared: Arc<Shared>,
+    established: OnceLock<Established>,
+    draining: AtomicBool,
+    cancelled: Mutex<HashSet<u64>>,
+}
+
+/// The [`Authorizer`] for one connection: checks the hello against the
+/// configuration and remembers the tenant and database version it chose.
+struct ConnAuth<'a> {
+    shared: &'a Shared,
+    chosen: RefCell<Option<(Arc<TenantRt>, Arc<MappedDb>)>>,
+}
+
+impl Authorizer for ConnAuth<'_> {
+    fn authorize(&self, hello: &Hello) -> Result<Welcome, ErrorMsg> {
+        let tenant = self.shared.tenants.get(&hello.tenant);
+        // Always run the constant-time compare, even for an unknown tenant,
+        // so that timing does not reveal which tenant names exist.
+        let token_ok = match tenant {
+            Some(t) => t.token_matches(&hello.token),
+            None => {
+                let _ = crate::ct_eq_token(&self.shared.dummy_token_hash, &hello.token);
+                false
+            }
+        };
+        let tenant = match tenant {
+            Some(t) if token_ok => t,
+            _ => {
+                return Err(ErrorMsg::new(
+                    ErrorCode::Unauthorized,
+                    "unknown tenant or bad token",
+                ))
+            }
+        };
+        let Some(slot) = self.shared.dbs.get(&hello.database) else {
+            return Err(ErrorMsg::new(
+                ErrorCode::UnknownDatabase,
+                format!("no database named {:?}", hello.database),
+            ));
+        };
+        if !tenant.cfg.databases.iter().any(|d| d == &hello.database) {
+            return Err(ErrorMsg::new(
+                ErrorCode::Forbidden,
+                format!(
+                    "tenant {:?} may not read database {:?}",
+                    tenant.cfg.name, hello.database
+                ),
+            ));
+        }
+        let db = slot.current();
+        let welcome = Welcome {
+            version: planet_protocol::PROTOCOL_VERSION,
+            database: slot.name.clone(),
+            file_size: db.len(),
+            header: db.header_bytes().to_vec(),
+            limits: Limits {
+                max_in_flight: tenant.cfg.max_in_flight,
+                max_record_size: self.shared.cfg.max_record_size,
+                max_bytes_per_second: tenant.cfg.max_bytes_per_second,
+                idle_timeout_ms: self.shared.cfg.idle_timeout_ms,
+            },
+        };
+        *self.chosen.borrow_mut() = Some((Arc::clone(tenant), db));
+        Ok(welcome)
+    }
+}
+
+fn handshake_outcome(code: ErrorCode) -> &'static str {
+    match code {
+        ErrorCode::Unauthorized => "unauthorized",
+        ErrorCode::Forbidden => "forbidden",
+        ErrorCode::UnknownDatabase => "unknown_database",
+        ErrorCode::UnsupportedVersion => "unsupported_version",
+        _ => "malformed",
+    }
+}
+
+enum Step {
+    Ctrl(Result<Option<quinn::Chunk>, quinn::ReadError>),
+    Stream(Result<(SendStream, RecvStream), quinn::ConnectionError>),
+    TaskDone,
+    Shutdown,
+    Deadline,
+    HelloTimeout,
+}
+
+/// Why the connection loop ended, i.e. how to close.
+enum End {
+    /// The peer is gone: nothing to send.
+    Lost,
+    /// Close with this application code and reason.
+    Close(u32, &'static str),
+}
+
+/// Serves one established QUIC connection until it ends.
+pub(crate) async fn serve_connection(
+    conn: quinn::Connection,
+    shared: Arc<Shared>,
+    mut shutdown: watch::Receiver<bool>,
+) {
+    let peer = conn.remote_address();
+    let first = tokio::select! {
+        r = conn.accept_bi() => Some(r),
+        _ = tokio::time::sleep(HELLO_TIMEOUT) => None,
+        _ = shutdown.wait_for(|s| *s) => {
+            conn.close(code(quic::CONNECTION_CLOSED_SHUTDOWN), b"shutting down");
+            return;
+        }
+    };
+    let (mut ctrl_send, mut ctrl_recv) = match first {
+        Some(Ok(streams)) => streams,
+        Some(Err(e)) => {
+            tracing::debug!(%peer, error = %e, "connection ended before the control stream");
+            return;
+        }
+        None => {
+            shared
+                .metrics
+                .handshakes_total
+                .with_label_values(&["malformed"])
+                .inc();
+            conn.close(
+                code(ErrorCode::HelloRequired.to_quic()),
+                b"no control stream",
+            );
+            return;
+        }
+    };
+
+    let ctx = Arc::new(ConnCtx {
+        shared: Arc::clone(&shared),
+        established: OnceLock::new(),
+        draining: AtomicBool::new(false),
+        cancelled: Mutex::new(HashSet::new()),
+    });
+    let (abort_tx, abort_rx) = watch::channel(false);
+    let mut session = ServerSession::new();
+    let mut tasks: JoinSet<()> = JoinSet::new();
+    let mut ctrl_open = true;
+    let mut accepting = true;
+    let mut draining: Option<(tokio::time::Instant, u32, &'static str)> = None;
+    let hello_deadline = tokio::time::Instant::now() + HELLO_TIMEOUT;
+    let mut handshake_counted = false;
+
+    let end = loop {
+        if let Some((_, code_, reason)) = draining {
+            if tasks.is_empty() {
+                break End::Close(code_, reason);
+            }
+        }
+        let deadline = draining.map(|d| d.0);
+        let established = ctx.established.get().is_some();
+        let step = tokio::select! {
+            r = ctrl_recv.read_chunk(16 * 1024, true), if ctrl_open => Step::Ctrl(r),
+            r = conn.accept_bi(), if accepting => Step::Stream(r),
+            Some(_) = tasks.join_next(), if !tasks.is_empty() => Step::TaskDone,
+            _ = shutdown.wait_for(|s| *s), if draining.is_none() => Step::Shutdown,
+            _ = sleep_until_opt(deadline), if deadline.is_some() => Step::Deadline,
+            _ = tokio::time::sleep_until(hello_deadline), if !established && draining.is_none() => Step::HelloTimeout,
+        };
+        match step {
+            Step::Ctrl(Ok(Some(chunk))) => {
+                let auth = ConnAuth {
+                    shared: &shared,
+                    chosen: RefCell::new(None),
+                };
+                let events = session.receive(&chunk.bytes, &auth);
+                let mut fatal = None;
+                for ev in events {
+                    match ev {
+                        ServerEvent::Welcomed { welcome, reply } => {
+                            let Some((tenant, db)) = auth.chosen.borrow_mut().take() else {
+                                fatal = Some(ErrorMsg::new(ErrorCode::Internal, "no database"));
+                                break;
+                            };
+                            if let Err(e) = ctrl_send.write_all(&reply).await {
+                                tracing::debug!(%peer, error = %e, "cannot write welcome");
+                                break;
+                            }
+                            handshake_counted = true;
+                            shared
+                                .metrics
+                                .handshakes_total
+                                .with_label_values(&["ok"])
+                                .inc();
+                            conn.set_max_concurrent_bi_streams(VarInt::from_u32(
+                                welcome.limits.max_in_flight + 1 + STREAM_MARGIN,
+                            ));
+                            tracing::info!(
+                                %peer, tenant = %tenant.cfg.name, database = %db.name,
+                                "session established"
+                            );
+                            let _ = ctx.established.set(Established {
+                                in_flight: Mutex::new(InFlight::new(tenant.cfg.max_in_flight)),
+                                tenant,
+                                db,
+                                session: session.clone(),
+                            });
+                        }
+                        ServerEvent::Fatal { error, reply } => {
+                            if !handshake_counted {
+                                handshake_counted = true;
+                                shared
+                                    .metrics
+                                    .handshakes_total
+                                    .with_label_values(&[handshake_outcome(error.code)])
+                                    .inc();
+                            }
+                            tracing::info!(%peer, error = %error, "control stream error, closing");
+                            let _ = ctrl_send.write_all(&reply).await;
+                            fatal = Some(error);
+                            break;
+                        }
+                        ServerEvent::Cancel { id } => {
+                            if let Ok(mut c) = ctx.cancelled.lock() {
+                                if c.len() < 4096 {
+                                    c.insert(id);
+                                }
+                            }
+                        }
+                        ServerEvent::Goodbye { reason } => {
+                            tracing::debug!(%peer, %reason, "client said goodbye");
+                            ctrl_open = false;
+                            accepting = false;
+                            draining.get_or_insert((
+                                tokio::time::Instant::now() + shared.cfg.shutdown_grace,
+                                quic::CONNECTION_CLOSED_NORMAL,
+                                "goodbye",
+                            ));
+                        }
+                        ServerEvent::PeerError(e) => {
+                            tracing::debug!(%peer, error = %e, "client reported an error");
+                        }
+                    }
+                }
+                if let Some(error) = fatal {
+                    let _ = ctrl_send.finish();
+                    let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
+                    let _ = abort_tx.send(true);
+                    conn.close(code(error.code.to_quic()), error.code.as_str().as_bytes());
+                    break End::Lost;
+                }
+            }
+            Step::Ctrl(Ok(None)) => {
+                ctrl_open = false;
+                if let Some(ServerEvent::Fatal { error, reply }) = session.finish() {
+                    if !handshake_counted {
+                        shared
+                            .metrics
+                            .handshakes_total
+                            .with_label_values(&[handshake_outcome(error.code)])
+                            .inc();
+                    }
+                    let _ = ctrl_send.write_all(&reply).await;
+                    let _ = ctrl_send.finish();
+                    let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
+                    let _ = abort_tx.send(true);
+                    conn.close(code(error.code.to_quic()), error.code.as_str().as_bytes());
+                    break End::Lost;
+                }
+                // Finishing the control stream ends the session gracefully.
+                accepting = false;
+                draining.get_or_insert((
+                    tokio::time::Instant::now() + shared.cfg.shutdown_grace,
+                    quic::CONNECTION_CLOSED_NORMAL,
+                    "done",
+                ));
+            }
+            Step::Ctrl(Err(e)) => {
+                tracing::debug!(%peer, error = %e, "control stream ended");
+                break End::Lost;
+            }
+            Step::Stream(Ok((send, recv))) => {
+                let ctx = Arc::clone(&ctx);
+                let abort = abort_rx.clone();
+                tasks.spawn(serve_request(ctx, send, recv, abort));
+            }
+            Step::Stream(Err(e)) => {
+                tracing::debug!(%peer, error = %e, "connection ended");
+                break End::Lost;
+            }
+            Step::TaskDone => {}
+            Step::Shutdown => {
+                ctx.draining.store(true, Ordering::Release);
+                if let Ok(frame) = (Goodbye {
+                    reason: ErrorCode::ShuttingDown,
+                })
+                .encode_frame()
+                {
+                    let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.write_all(&frame)).await;
+                }
+                draining = Some((
+                    tokio::time::Instant::now() + shared.cfg.shutdown_grace,
+                    quic::CONNECTION_CLOSED_SHUTDOWN,
+                    "shutting down",
+                ));
+            }
+            Step::Deadline => {
+                // Grace period over: reset whatever is still being sent.
+                let _ = abort_tx.send(true);
+                let _ = tokio::time::timeout(Duration::from_secs(1), async {
+                    while tasks.join_next().await.is_some() {}
+                })
+                .await;
+                let (c, r) = draining
+                    .map_or((quic::CONNECTION_CLOSED_SHUTDOWN, "shutting down"), |d| {
+                        (d.1, d.2)
+                    });
+                break End::Close(c, r);
+            }
+            Step::HelloTimeout => {
+                if !handshake_counted {
+                    shared
+                        .metrics
+                        .handshakes_total
+                        .with_label_values(&["malformed"])
+                        .inc();
+                }
+                let _ = abort_tx.send(true);
+                conn.close(code(ErrorCode::HelloRequired.to_quic()), b"hello timeout");
+                break End::Lost;
+            }
+        }
+    };
+    if let End::Close(c, reason) = end {
+        let _ = ctrl_send.finish();
+        let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
+        conn.close(code(c), reason.as_bytes());
+    }
+    let _ = abort_tx.send(true);
+    tasks.shutdown().await;
+}
+
+async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(d) => tokio::time::sleep_until(d).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// Decrements the in-flight accounting when a request ends.
+struct InFlightGuard<'a> {
+    est: &'a Established,
+    id: u64,
+    gauge: &'a prometheus::IntGauge,
+}
+
+impl Drop for InFlightGuard<'_> {
+    fn drop(&mut self) {
+        if let Ok(mut f) = self.est.in_flight.lock() {
+            f.end(self.id);
+        }
+        self.gauge.dec();
+    }
+}
+
+/// Writes an error head and finishes the stream.
+async fn reply_error(send: &mut SendStream, id: u64, error: ErrorMsg) {
+    match ResponseHead::error(id, error).encode_frame() {
+        Ok(frame) => {
+            if send.write_all(&frame).await.is_ok() {
+                let _ = send.finish();
+                let _ = tokio::time::timeout(FLUSH_TIMEOUT, send.stopped()).await;
+            }
+        }
+        Err(_) => {
+            let _ = send.reset(code(ErrorCode::Internal.to_quic()));
+        }
+    }
+}
+
+/// Checks a request against the mapped file, before touching record bytes
+/// beyond the 8-byte record prefix.
+fn validate(est: &Established, req: &LodRequest) -> Result<(), ErrorMsg> {
+    est.session.check_request(req)?;
+    let db = &est.db;
+    let end = req.offset.checked_add(u64::from(req.size));
+    if req.offset < SUPERBLOCK_LEN as u64 || end.is_none_or(|e| e > db.records_end()) {
+        return Err(ErrorMsg::new(
+            ErrorCode::OutOfRange,
+            format!(
+                "{}+{} is outside the record area [{SUPERBLOCK_LEN}, {})",
+                req.offset,
+                req.size,
+                db.records_end()
+            ),
+        ));
+    }
+    let start = req.offset as usize;
+    let prefix = db
+        .bytes()
+        .get(start..start + 8)
+        .filter(|_| req.offset + 8 <= db.records_end())
+        .ok_or_else(|| ErrorMsg::new(ErrorCode::NotARecord, "no record prefix at offset"))?;
+    let len = peek_record_len(prefix).map_err(|e| {
+        ErrorMsg::new(
+            ErrorCode::NotARecord,
+            format!("offset {} is not a record start: {e}", req.offset),
+        )
+    })?;
+    if len != req.size {
+        return Err(ErrorMsg::new(
+            ErrorCode::WrongSize,
+            format!("record at {} is {len} bytes, not {}", req.offset, req.size),
+        ));
+    }
+    Ok(())
+}
+
+async fn serve_request(
+    ctx: Arc<ConnCtx>,
+    mut send: SendStream,
+    mut recv: RecvStream,
+    mut abort: watch::Receiver<bool>,
+) {
+    let metrics = &ctx.shared.metrics;
+    let read = tokio::time::timeout(
+        REQUEST_READ_TIMEOUT,
+        recv.read_to_end(LOD_REQUEST_FRAME_LEN),
+    );
+    let bytes = match read.await {
+        Ok(Ok(b)) => b,
+        Ok(Err(quinn::ReadToEndError::TooLong)) => {
+            let _ = recv.stop(code(ErrorCode::Malformed.to_quic()));
+            metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Invalid);
+            reply_error(
+                &mut send,
+                0,
+                ErrorMsg::new(
+                    ErrorCode::Malformed,
+                    "request stream longer than one request",
+                ),
+            )
+            .await;
+            return;
+        }
+        Ok(Err(quinn::ReadToEndError::Read(e))) => {
+            tracing::debug!(error = %e, "request stream read failed");
+            let _ = send.reset(code(quic::STREAM_CANCELLED));
+            return;
+        }
+        Err(_) => {
+            let _ = recv.stop(code(ErrorCode::Malformed.to_quic()));
+            let _ = send.reset(code(ErrorCode::Malformed.to_quic()));
+            metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Invalid);
+            return;
+        }
+    };
+    let req = match decode_request_stream(&bytes) {
+        Ok(r) => r,
+        Err(e) => {
+            let (t, d) = ctx.established.get().map_or((NO_TENANT, NO_TENANT), |e| {
+                (e.tenant.cfg.name.as_str(), e.db.name.as_str())
+            });
+            metrics.request(t, d, RequestOutcome::Invalid);
+            reply_error(&mut send, 0, e.to_error_msg()).await;
+            return;
+        }
+    };
+    let Some(est) = ctx.established.get() else {
+        metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Unauthorized);
+        reply_error(
+            &mut send,
+            req.id,
+            ErrorMsg::new(
+                ErrorCode::HelloRequired,
+                "request before the handshake completed",
+            ),
+        )
+        .await;
+        return;
+    };
+    let tenant = est.tenant.cfg.name.as_str();
+    let dbname = est.db.name.as_str();
+    let fail = |e: ErrorMsg| {
+        metrics.request(tenant, dbname, RequestOutcome::for_code(e.code));
+        e
+    };
+    if ctx.draining.load(Ordering::Acquire) {
+        let e = fail(ErrorMsg::new(
+            ErrorCode::ShuttingDown,
+            "server is shutting down",
+        ));
+        reply_error(&mut send, req.id, e).await;
+        return;
+    }
+    if let Err(e) = validate(est, &req) {
+        let e = fail(e);
+        reply_error(&mut send, req.id, e).await;
+        return;
+    }
+    let begun = match est.in_flight.lock() {
+        Ok(mut f) => f.begin(req.id).map_err(|e| e.to_error_msg()),
+        Err(_) => Err(ErrorMsg::new(
+            ErrorCode::Internal,
+            "in-flight state poisoned",
+        )),
+    };
+    if let Err(e) = begun {
+        let e = fail(e);
+        reply_error(&mut send, req.id, e).await;
+        return;
+    }
+    metrics.requests_in_flight.inc();
+    let _guard = InFlightGuard {
+        est,
+        id: req.id,
+        gauge: &metrics.requests_in_flight,
+    };
+    let started = Instant::now();
+    let size = u64::from(req.size);
+
+    // Per-tenant bandwidth: pace modest excess, refuse long waits.
+    if let Some(bucket) = &est.tenant.bucket {
+        match bucket.reserve(size, ctx.shared.cfg.max_rate_wait) {
+            Ok(wait) if !wait.is_zero() => {
+                let aborted = tokio::select! {
+                    _ = tokio::time::sleep(wait) => false,
+                    _ = abort.wait_for(|a| *a) => true,
+                    _ = send.stopped() => true,
+                };
+                if aborted {
+                    bucket.refund(size);
+                    let _ = send.reset(code(quic::STREAM_CANCELLED));
+                    metrics.request(tenant, dbname, RequestOutcome::Cancelled);
+                    return;
+                }
+            }
+            Ok(_) => {}
+            Err(wait) => {
+                let e = fail(ErrorMsg::new(
+                    ErrorCode::RateLimited,
+                    format!(
+                        "tenant bandwidth limit: would wait {:.1} s (limit {:.1} s)",
+                        wait.as_secs_f64(),
+                        ctx.shared.cfg.max_rate_wait.as_secs_f64()
+                    ),
+                ));
+                reply_error(&mut send, req.id, e).await;
+                return;
+            }
+        }
+    }
+    let was_cancelled = ctx
+        .cancelled
+        .lock()
+        .map(|mut c| c.remove(&req.id))
+        .unwrap_or(false);
+    if was_cancelled {
+        let _ = send.reset(code(quic::STREAM_CANCELLED));
+        metrics.request(tenant, dbname, RequestOutcome::Cancelled);
+        return;
+    }
+
+    let start = req.offset as usize;
+    let end = start + req.size as usize;
+    let Some(slice) = RecordSlice::new(Arc::clone(&est.db), start, end) else {
+        let e = fail(ErrorMsg::new(ErrorCode::Internal, "record range"));
+        reply_error(&mut send, req.id, e).await;
+        return;
+    };
+    if !record_checksum_ok(slice.as_ref()) {
+        tracing::error!(
+            database = dbname, path = %est.db.path.display(), offset = req.offset, size = req.size,
+            "record failed its checksum: the database file is corrupt"
+        );
+        let e = fail(ErrorMsg::new(
+            ErrorCode::CorruptRecord,
+            format!("record at {} failed its checksum on the server", req.offset),
+        ));
+        reply_error(&mut send, req.id, e).await;
+        return;
+    }
+    let head = match ResponseHead::ok(req.id, req.size).encode_frame() {
+        Ok(h) => h,
+        Err(_) => {
+            let e = fail(ErrorMsg::new(ErrorCode::Internal, "cannot encode head"));
+            reply_error(&mut send, req.id, e).await;
+            return;
+        }
+    };
+    let mut chunks = [Bytes::from(head), Bytes::from_owner(slice)];
+    let written = tokio::select! {
+        r = send.write_all_chunks(&mut chunks) => Some(r),
+        _ = abort.wait_for(|a| *a) => None,
+    };
+    let outcome = match written {
+        None => {
+            let _ = send.reset(code(quic::CONNECTION_CLOSED_SHUTDOWN));
+            RequestOutcome::Error
+        }
+        Some(Err(quinn::WriteError::Stopped(_))) => RequestOutcome::Cancelled,
+        // The client went away mid-response: not a server error.
+        Some(Err(quinn::WriteError::ConnectionLost(_))) => RequestOutcome::Cancelled,
+        Some(Err(e)) => {
+            tracing::warn!(error = %e, "response write failed");
+            let _ = send.reset(code(ErrorCode::Internal.to_quic()));
+            RequestOutcome::Error
+        }
+        Some(Ok(())) => {
+            let _ = send.finish();
+            // Hold the in-flight slot until the client has the data (or
+            // stops the stream), so the limit bounds buffered memory and a
+            // late stop is seen as a cancellation.
+            let acked = tokio::select! {
+                r = tokio::time::timeout(ACK_TIMEOUT, send.stopped()) => r.ok(),
+                _ = abort.wait_for(|a| *a) => None,
+            };
+            match acked {
+                Some(Ok(Some(_))) => RequestOutcome::Cancelled,
+                _ => RequestOutcome::Ok,
+            }
+        }
+    };
+    metrics.request(tenant, dbname, outcome);
+    if outcome == RequestOutcome::Ok {
+        metrics
+            .bytes_sent_total
+            .with_label_values(&[tenant, dbname])
+            .inc_by(size);
+        metrics
+            .record_size
+            .with_label_values(&[dbname])
+            .observe(size as f64);
+        metrics
+            .request_duration
+            .with_label_values(&[dbname])
+            .observe(started.elapsed().as_secs_f64());
+    }
+}

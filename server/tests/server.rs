@@ -1,0 +1,803 @@
+//! End-to-end tests of planet-server with the client transport
+//! (`planet_client::net`) and raw QUIC streams.
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+use planet_client::net::{ConnectOptions, NetError, NetEvent, Session, SessionConfig};
+use planet_protocol::{
+    ErrorCode, FrameDecoder, Hello, LodRequest, Message, Response, ResponseDecoder,
+};
+use planet_server::{ReloadOutcome, Server, ServerConfig};
+
+fn server_code(r: Result<Vec<u8>, NetError>) -> ErrorCode {
+    match r {
+        Err(NetError::Server(e)) => e.code,
+        other => panic!("expected a server error head, got {other:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fetches_whole_tree_and_counts_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let file = file_bytes(&dir.path().join("earth.planetdb"));
+    let h = Server::start(cfg).await.unwrap();
+    assert_eq!(h.cert_fingerprint().len(), 64);
+    assert_eq!(
+        planet_client::tls::sha256_hex(h.cert_der()),
+        h.cert_fingerprint()
+    );
+
+    let (status, _) = http_get(h.metrics_addr().unwrap(), "/healthz").await;
+    assert_eq!(status, 200);
+    let (status, _) = http_get(h.metrics_addr().unwrap(), "/readyz").await;
+    assert_eq!(status, 200);
+
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    assert_eq!(welcome.database, "earth");
+    assert_eq!(welcome.file_size, file.len() as u64);
+    assert_eq!(welcome.limits.max_in_flight, 4);
+    let fetched = fetch_tree(&conn, &welcome).await;
+    assert_eq!(fetched.len(), recs.len());
+    let mut total = 0u64;
+    for (off, size, bytes) in &fetched {
+        assert_eq!(
+            &file[*off as usize..*off as usize + *size as usize],
+            &bytes[..]
+        );
+        total += u64::from(*size);
+    }
+    let n = fetched.len() as f64;
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= n
+    })
+    .await;
+    assert_eq!(
+        metric(&text, "planet_requests_total", &[("outcome", "ok")]),
+        n
+    );
+    assert_eq!(
+        metric(
+            &text,
+            "planet_requests_total",
+            &[("tenant", "acme"), ("database", "earth")]
+        ),
+        n
+    );
+    assert_eq!(metric(&text, "planet_bytes_sent_total", &[]), total as f64);
+    assert_eq!(
+        metric(&text, "planet_handshakes_total", &[("outcome", "ok")]),
+        1.0
+    );
+    assert_eq!(
+        metric(
+            &text,
+            "planet_connections_total",
+            &[("outcome", "accepted")]
+        ),
+        1.0
+    );
+    assert_eq!(metric(&text, "planet_connections_active", &[]), 1.0);
+    assert_eq!(metric(&text, "planet_record_size_bytes_count", &[]), n);
+    assert_eq!(
+        metric(&text, "planet_request_duration_seconds_count", &[]),
+        n
+    );
+    assert_eq!(
+        metric(
+            &text,
+            "planet_database_size_bytes",
+            &[("database", "earth")]
+        ),
+        file.len() as f64
+    );
+    assert_eq!(metric(&text, "planet_build_info", &[]), 1.0);
+    for name in [
+        "planet_requests_in_flight",
+        "planet_database_reloads_total",
+        "process_cpu_seconds_total",
+        "process_resident_memory_bytes",
+        "process_open_fds",
+    ] {
+        assert!(text.contains(name), "{name} missing from /metrics");
+    }
+    conn.close();
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_requests_get_their_codes_and_the_connection_stays_usable() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    let (good, good_welcome) = connect(&h, acme()).await.unwrap();
+    let good_task = tokio::spawn(async move {
+        let mut n = 0;
+        for _ in 0..3 {
+            n += fetch_tree(&good, &good_welcome).await.len();
+        }
+        good.close();
+        n
+    });
+    let (off, size) = recs[0];
+    let file_size = welcome.file_size;
+    let cases: Vec<(u64, u32, ErrorCode)> = vec![
+        (file_size + 10, 100, ErrorCode::OutOfRange),
+        (file_size - 10, 100, ErrorCode::OutOfRange),
+        (0, 64, ErrorCode::OutOfRange),
+        // Inside the header: past the record area.
+        (file_size - 200, 100, ErrorCode::OutOfRange),
+        (off + 7, size, ErrorCode::NotARecord),
+        (off + 100, 200, ErrorCode::NotARecord),
+        (off, size - 1, ErrorCode::WrongSize),
+        (off, size + 1, ErrorCode::WrongSize),
+        (off, 0, ErrorCode::WrongSize),
+        (off, 17 * 1024 * 1024, ErrorCode::RecordTooLarge),
+    ];
+    for (i, (o, s, code)) in cases.iter().enumerate() {
+        let got = server_code(conn.fetch(100 + i as u64, *o, *s).await);
+        assert_eq!(got, *code, "case {i}: offset {o} size {s}");
+        // Still usable.
+        let ok = conn.fetch(1, off, size).await.unwrap();
+        assert_eq!(ok.len(), size as usize);
+    }
+    assert_eq!(good_task.await.unwrap(), 3 * recs.len());
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "invalid")]) >= cases.len() as f64
+    })
+    .await;
+    assert_eq!(
+        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
+        cases.len() as f64
+    );
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn handshake_rejections() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let cases = [
+        (
+            Hello::new("acme", "wrong", "earth"),
+            ErrorCode::Unauthorized,
+        ),
+        (
+            Hello::new("nobody", "s3cret", "earth"),
+            ErrorCode::Unauthorized,
+        ),
+        (Hello::new("acme", "s3cret", "mars"), ErrorCode::Forbidden),
+        (
+            Hello::new("acme", "s3cret", "venus"),
+            ErrorCode::UnknownDatabase,
+        ),
+        (
+            Hello {
+                version: 99,
+                ..acme()
+            },
+            ErrorCode::UnsupportedVersion,
+        ),
+    ];
+    for (hello, code) in cases {
+        match connect(&h, hello.clone()).await {
+            Err(NetError::Rejected(e)) => assert_eq!(e.code, code, "{hello:?}"),
+            other => panic!("{hello:?}: expected rejection, got {other:?}"),
+        }
+    }
+    // The other tenant reads its own database.
+    let (conn, welcome) = connect(&h, Hello::new("other", "t0ken", "mars"))
+        .await
+        .unwrap();
+    assert_eq!(fetch_tree(&conn, &welcome).await.len(), 30);
+    let text = scrape(&h).await;
+    assert_eq!(
+        metric(
+            &text,
+            "planet_handshakes_total",
+            &[("outcome", "unauthorized")]
+        ),
+        2.0
+    );
+    assert_eq!(
+        metric(
+            &text,
+            "planet_handshakes_total",
+            &[("outcome", "forbidden")]
+        ),
+        1.0
+    );
+    assert_eq!(
+        metric(
+            &text,
+            "planet_handshakes_total",
+            &[("outcome", "unknown_database")]
+        ),
+        1.0
+    );
+    assert_eq!(
+        metric(
+            &text,
+            "planet_handshakes_total",
+            &[("outcome", "unsupported_version")]
+        ),
+        1.0
+    );
+    h.shutdown().await;
+}
+
+async fn read_all(recv: &mut quinn::RecvStream) -> Vec<u8> {
+    recv.read_to_end(1 << 20).await.expect("read response")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn request_before_hello_and_malformed_control_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let (good, good_welcome) = connect(&h, acme()).await.unwrap();
+    let req = LodRequest {
+        id: 9,
+        offset: recs[0].0,
+        size: recs[0].1,
+    };
+
+    // 1. A request on a second stream while the hello is incomplete:
+    //    error head hello_required, the connection stays up.
+    {
+        let (_ep, conn) = raw_connect(&h).await;
+        let (mut ctrl_send, _ctrl_recv) = conn.open_bi().await.unwrap();
+        let hello = acme().encode_frame().unwrap();
+        ctrl_send.write_all(&hello[..3]).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let (mut send, mut recv) = conn.open_bi().await.unwrap();
+        send.write_all(&req.encode_frame().unwrap()).await.unwrap();
+        send.finish().unwrap();
+        let mut dec = ResponseDecoder::new(req);
+        dec.push(&read_all(&mut recv).await).unwrap();
+        match dec.finish().unwrap() {
+            Response::Error { error, .. } => assert_eq!(error.code, ErrorCode::HelloRequired),
+            other => panic!("{other:?}"),
+        }
+        // Completing the hello then makes requests work.
+        ctrl_send.write_all(&hello[3..]).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let (mut send, mut recv) = conn.open_bi().await.unwrap();
+        send.write_all(&req.encode_frame().unwrap()).await.unwrap();
+        send.finish().unwrap();
+        let mut dec = ResponseDecoder::new(req);
+        dec.push(&read_all(&mut recv).await).unwrap();
+        assert!(matches!(dec.finish().unwrap(), Response::Record { .. }));
+    }
+
+    // 2. Control-stream violations are fatal with their code.
+    let bad_frames: Vec<(Vec<u8>, ErrorCode)> = vec![
+        (req.encode_frame().unwrap(), ErrorCode::HelloRequired),
+        (vec![2, 0, 0, 0, 0x7f, 0], ErrorCode::UnknownMessage),
+        (vec![0xff, 0xff, 0xff, 0x7f, 0x01], ErrorCode::FrameTooLarge),
+        (vec![3, 0, 0, 0, 0x01, 1, 2], ErrorCode::Malformed),
+    ];
+    for (bytes, code) in bad_frames {
+        let (_ep, conn) = raw_connect(&h).await;
+        let (mut send, mut recv) = conn.open_bi().await.unwrap();
+        send.write_all(&bytes).await.unwrap();
+        let reply = recv.read_to_end(1 << 16).await.unwrap_or_default();
+        let mut dec = FrameDecoder::new();
+        dec.push(&reply);
+        match dec.next_frame() {
+            Ok(Some(Message::Error(e))) => assert_eq!(e.code, code, "{bytes:?}"),
+            other => panic!("{bytes:?}: expected an Error frame, got {other:?}"),
+        }
+        let closed = conn.closed().await;
+        match closed {
+            quinn::ConnectionError::ApplicationClosed(c) => {
+                assert_eq!(c.error_code.into_inner(), u64::from(code.to_quic()))
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    // 3. After the hello: an unknown message type on the control stream.
+    {
+        let (_ep, conn) = raw_connect(&h).await;
+        let (mut send, mut recv) = conn.open_bi().await.unwrap();
+        send.write_all(&acme().encode_frame().unwrap())
+            .await
+            .unwrap();
+        send.write_all(&[2, 0, 0, 0, 0x42, 0]).await.unwrap();
+        let reply = recv.read_to_end(1 << 20).await.unwrap_or_default();
+        let mut dec = FrameDecoder::new();
+        dec.push(&reply);
+        assert!(matches!(dec.next_frame(), Ok(Some(Message::Welcome(_)))));
+        match dec.next_frame() {
+            Ok(Some(Message::Error(e))) => assert_eq!(e.code, ErrorCode::UnknownMessage),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    // A well-behaved client was served throughout.
+    assert_eq!(fetch_tree(&good, &good_welcome).await.len(), recs.len());
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn too_many_in_flight() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    cfg.tenants[0].max_in_flight = 2;
+    let h = Server::start(cfg).await.unwrap();
+    // A tiny stream receive window: the server cannot finish a response
+    // until we read it, so requests stay in flight.
+    let mut t = quinn::TransportConfig::default();
+    t.stream_receive_window(quinn::VarInt::from_u32(256));
+    let opts = ConnectOptions {
+        transport: Some(std::sync::Arc::new(t)),
+        ..ConnectOptions::default()
+    };
+    let (conn, _) = connect_opts(&h, acme(), &opts).await.unwrap();
+    let q = conn.quinn();
+    let mut held = Vec::new();
+    for (i, (off, size)) in recs.iter().take(2).enumerate() {
+        let req = LodRequest {
+            id: i as u64,
+            offset: *off,
+            size: *size,
+        };
+        let (mut send, mut recv) = q.open_bi().await.unwrap();
+        send.write_all(&req.encode_frame().unwrap()).await.unwrap();
+        send.finish().unwrap();
+        // Wait for the first response bytes: the request is now in flight.
+        let first = recv.read_chunk(16, true).await.unwrap().unwrap();
+        let first: Vec<u8> = first.bytes.to_vec();
+        held.push((req, recv, first));
+    }
+    let (off, size) = recs[2];
+    let got = server_code(conn.fetch(7, off, size).await);
+    assert_eq!(got, ErrorCode::TooManyInFlight);
+    // Duplicate id of a request in flight.
+    let got = server_code(conn.fetch(0, off, size).await);
+    assert_eq!(got, ErrorCode::DuplicateRequest);
+    // Drain the held responses: they complete, and the slot frees up.
+    for (req, mut recv, first) in held {
+        let mut dec = ResponseDecoder::new(req);
+        dec.push(&first).unwrap();
+        dec.push(&read_all(&mut recv).await).unwrap();
+        assert!(matches!(dec.finish().unwrap(), Response::Record { .. }));
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(conn.fetch(8, off, size).await.unwrap().len(), size as usize);
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn corrupt_record_is_refused_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    let path = dir.path().join("earth.planetdb");
+    let mut bytes = file_bytes(&path);
+    let (off, size) = recs[3];
+    bytes[off as usize + size as usize / 2] ^= 0x40;
+    let bad = dir.path().join("bad.planetdb");
+    std::fs::write(&bad, &bytes).unwrap();
+    cfg.databases[0].path = bad;
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, _) = connect(&h, acme()).await.unwrap();
+    assert_eq!(
+        server_code(conn.fetch(1, off, size).await),
+        ErrorCode::CorruptRecord
+    );
+    let (o2, s2) = recs[4];
+    assert_eq!(conn.fetch(2, o2, s2).await.unwrap().len(), s2 as usize);
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 1.0
+    })
+    .await;
+    assert_eq!(
+        metric(&text, "planet_requests_total", &[("outcome", "corrupt")]),
+        1.0
+    );
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn max_connections_refuses_extra() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, _) = two_tenant_config(dir.path());
+    cfg.max_connections = 1;
+    let h = Server::start(cfg).await.unwrap();
+    let (first, _) = connect(&h, acme()).await.unwrap();
+    match connect(&h, acme()).await {
+        Err(e) => assert_eq!(e.code(), Some(ErrorCode::ServerBusy), "{e:?}"),
+        Ok(_) => panic!("second connection accepted"),
+    }
+    let text = scrape(&h).await;
+    assert_eq!(
+        metric(
+            &text,
+            "planet_connections_total",
+            &[("outcome", "rejected")]
+        ),
+        1.0
+    );
+    // After the first leaves, a new one gets in.
+    first.close();
+    drop(first);
+    let mut ok = false;
+    for _ in 0..50 {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        if connect(&h, acme()).await.is_ok() {
+            ok = true;
+            break;
+        }
+    }
+    assert!(ok, "slot not freed");
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reload_serves_new_file_to_new_sessions_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, old_recs) = two_tenant_config(dir.path());
+    let path = dir.path().join("earth.planetdb");
+    let old_file = file_bytes(&path);
+    let h = Server::start(cfg).await.unwrap();
+    let (old_conn, old_welcome) = connect(&h, acme()).await.unwrap();
+
+    // Unchanged file: no reload.
+    assert!(h
+        .reload()
+        .iter()
+        .all(|(_, o)| *o == ReloadOutcome::Unchanged));
+    // Publish a new version by rename (DbWriter writes .tmp then renames).
+    let new_recs = build_db(&path, 7);
+    let new_file = file_bytes(&path);
+    assert_ne!(old_file, new_file);
+    let outcome = h.reload();
+    assert!(
+        outcome.contains(&("earth".to_string(), ReloadOutcome::Reloaded)),
+        "{outcome:?}"
+    );
+
+    // The old session still reads the old file.
+    for (off, size, bytes) in fetch_tree(&old_conn, &old_welcome).await {
+        assert_eq!(
+            &old_file[off as usize..(off + u64::from(size)) as usize],
+            &bytes[..]
+        );
+    }
+    assert_eq!(old_recs.len(), new_recs.len());
+    // A new session gets the new one.
+    let (new_conn, new_welcome) = connect(&h, acme()).await.unwrap();
+    assert_ne!(new_welcome.header, old_welcome.header);
+    for (off, size, bytes) in fetch_tree(&new_conn, &new_welcome).await {
+        assert_eq!(
+            &new_file[off as usize..(off + u64::from(size)) as usize],
+            &bytes[..]
+        );
+    }
+    let text = scrape(&h).await;
+    assert_eq!(
+        metric(
+            &text,
+            "planet_database_reloads_total",
+            &[("database", "earth")]
+        ),
+        1.0
+    );
+    // A broken replacement is refused; the previous file stays.
+    std::fs::write(dir.path().join("tmp"), b"garbage").unwrap();
+    std::fs::rename(dir.path().join("tmp"), &path).unwrap();
+    assert!(matches!(h.reload()[0].1, ReloadOutcome::Failed(_)));
+    let (c3, w3) = connect(&h, acme()).await.unwrap();
+    assert_eq!(w3.header, new_welcome.header);
+    drop(c3);
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn graceful_shutdown_says_goodbye_and_closes() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, _) = connect(&h, acme()).await.unwrap();
+    let (off, size) = recs[0];
+    conn.fetch(1, off, size).await.unwrap();
+    let watcher = conn.clone();
+    let closed = tokio::spawn(async move { watcher.closed().await });
+    h.shutdown().await;
+    let reason = tokio::time::timeout(Duration::from_secs(5), closed)
+        .await
+        .expect("closed in time")
+        .unwrap();
+    assert_eq!(reason.code(), Some(ErrorCode::ShuttingDown), "{reason:?}");
+    assert_eq!(conn.goodbye(), Some(ErrorCode::ShuttingDown));
+}
+
+#[test]
+fn session_reconnects_after_server_restart() {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    // Both servers use the same certificate (PEM files), as a restarted
+    // server would.
+    let ck = planet_server::tls::CertKey::dev_cert().unwrap();
+    let cert_pem = dir.path().join("cert.pem");
+    let key_pem = dir.path().join("key.pem");
+    write_pem(&cert_pem, "CERTIFICATE", ck.leaf_der());
+    write_pem(&key_pem, "PRIVATE KEY", ck.key.secret_der());
+    let mut cfg: ServerConfig = cfg;
+    cfg.tls = planet_server::TlsSource::Pem {
+        cert: cert_pem,
+        key: key_pem,
+    };
+    let h = rt.block_on(Server::start(cfg.clone())).unwrap();
+    let addr = h.local_addr();
+    let tls = tls_for(&h);
+    let mut scfg = SessionConfig::new(addr, "localhost", tls, acme());
+    scfg.options.connect_timeout = Duration::from_millis(500);
+    scfg.backoff_initial = Duration::from_millis(50);
+    scfg.backoff_max = Duration::from_millis(400);
+    let session = Session::spawn(rt.handle(), scfg);
+    let wait_for = |pred: &dyn Fn(&NetEvent) -> bool| -> NetEvent {
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while std::time::Instant::now() < deadline {
+            if let Some(ev) = session.wait_event(Duration::from_millis(100)) {
+                if pred(&ev) {
+                    return ev;
+                }
+            }
+        }
+        panic!("event not received");
+    };
+    wait_for(&|e| matches!(e, NetEvent::Connected(_)));
+    let (off, size) = recs[0];
+    session.request(1, off, size);
+    match wait_for(&|e| matches!(e, NetEvent::Record { .. } | NetEvent::Failed { .. })) {
+        NetEvent::Record { id, bytes } => {
+            assert_eq!(id, 1);
+            assert_eq!(bytes.len(), size as usize);
+        }
+        other => panic!("{other:?}"),
+    }
+    // Cancel support: cancelling an id not in flight is a no-op.
+    session.cancel(99);
+
+    rt.block_on(h.shutdown());
+    wait_for(&|e| matches!(e, NetEvent::Disconnected));
+    // Restart on the same port.
+    cfg.listen = addr;
+    let mut h2 = None;
+    for _ in 0..40 {
+        match rt.block_on(Server::start(cfg.clone())) {
+            Ok(h) => {
+                h2 = Some(h);
+                break;
+            }
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    }
+    let h2 = h2.expect("restart on the same port");
+    wait_for(&|e| matches!(e, NetEvent::Connected(_)));
+    session.request(2, off, size);
+    match wait_for(&|e| matches!(e, NetEvent::Record { .. } | NetEvent::Failed { .. })) {
+        NetEvent::Record { id, .. } => assert_eq!(id, 2),
+        other => panic!("{other:?}"),
+    }
+    session.close();
+    rt.block_on(h2.shutdown());
+}
+
+fn write_pem(path: &std::path::Path, label: &str, der: &[u8]) {
+    // Minimal base64 (standard alphabet, padded).
+    const A: &[u8] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut b64 = String::new();
+    for chunk in der.chunks(3) {
+        let n = (u32::from(chunk[0]) << 16)
+            | (u32::from(*chunk.get(1).unwrap_or(&0)) << 8)
+            | u32::from(*chunk.get(2).unwrap_or(&0));
+        for i in 0..4 {
+            if i <= chunk.len() {
+                b64.push(A[((n >> (18 - 6 * i)) & 63) as usize] as char);
+            } else {
+                b64.push('=');
+            }
+        }
+    }
+    let mut pem = format!("-----BEGIN {label}-----\n");
+    for line in b64.as_bytes().chunks(64) {
+        pem.push_str(std::str::from_utf8(line).unwrap());
+        pem.push('\n');
+    }
+    pem.push_str(&format!("-----END {label}-----\n"));
+    std::fs::write(path, pem).unwrap();
+}
+
+#[test]
+fn config_errors_are_clear() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("earth.planetdb");
+    build_db(&db, 1);
+    let base = format!(
+        "listen = \"127.0.0.1:0\"\n[[database]]\nname = \"earth\"\npath = \"{}\"\n",
+        db.display()
+    );
+    let ok = format!("{base}[[tenant]]\nname = \"p\"\ntoken = \"x\"\ndatabases = [\"earth\"]\n");
+    ServerConfig::from_toml_str(&ok, dir.path()).expect("valid config");
+    let unknown_db =
+        format!("{base}[[tenant]]\nname = \"p\"\ntoken = \"x\"\ndatabases = [\"mars\"]\n");
+    let e = ServerConfig::from_toml_str(&unknown_db, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("unknown database \"mars\""), "{e}");
+    let dup = format!("{ok}[[tenant]]\nname = \"p\"\ntoken = \"y\"\ndatabases = []\n");
+    let e = ServerConfig::from_toml_str(&dup, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("duplicate tenant"), "{e}");
+    let missing = ok.replace("earth.planetdb", "nope.planetdb");
+    let e = ServerConfig::from_toml_str(&missing, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("nope.planetdb"), "{e}");
+    let typo = format!("{ok}max_conections = 3\n");
+    assert!(ServerConfig::from_toml_str(&typo, dir.path()).is_err());
+    // The deploy example parses (paths do not exist here, so only syntax).
+    let example = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/server.toml"),
+    )
+    .unwrap();
+    let e = ServerConfig::from_toml_str(&example, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("/data/earth.planetdb"), "{e}");
+
+    // A truncated database is refused naming the file.
+    let trunc = dir.path().join("trunc.planetdb");
+    let bytes = std::fs::read(&db).unwrap();
+    std::fs::write(&trunc, &bytes[..bytes.len() - 5]).unwrap();
+    let e = planet_server::db::MappedDb::open("t", &trunc).unwrap_err();
+    assert!(e.to_string().contains("trunc.planetdb"), "{e}");
+}
+
+#[test]
+fn binary_single_database_mode_healthcheck_sighup_sigterm() {
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+    let bin = env!("CARGO_BIN_EXE_planet-server");
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("earth.planetdb");
+    let recs = build_db(&db, 1);
+    let mut child = Command::new(bin)
+        .args([
+            "--database",
+            db.to_str().unwrap(),
+            "--listen",
+            "127.0.0.1:0",
+        ])
+        .args([
+            "--dev-cert",
+            "--metrics",
+            "127.0.0.1:0",
+            "--log-format",
+            "json",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    let mut field = |prefix: &str| -> String {
+        let line = lines.next().expect("line").expect("read");
+        line.strip_prefix(prefix)
+            .unwrap_or_else(|| panic!("expected {prefix:?}, got {line:?}"))
+            .trim()
+            .to_string()
+    };
+    let fingerprint = field("cert-sha256 ");
+    let addr: std::net::SocketAddr = field("listening ").parse().unwrap();
+    let metrics = field("metrics ");
+    let health = |path: &str| {
+        Command::new(bin)
+            .args(["healthcheck", "--url", &format!("http://{metrics}{path}")])
+            .status()
+            .unwrap()
+            .success()
+    };
+    assert!(health("/healthz"));
+    assert!(health("/readyz"));
+    assert!(!health("/nope"));
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let tls = planet_client::tls::pinned(&fingerprint).unwrap();
+    let (off, size) = recs[0];
+    rt.block_on(async {
+        let (conn, w) = planet_client::net::Connection::connect(
+            addr,
+            "localhost",
+            tls.clone(),
+            Hello::new("public", "", "earth"),
+        )
+        .await
+        .unwrap();
+        assert_eq!(w.database, "earth");
+        assert_eq!(conn.fetch(1, off, size).await.unwrap().len(), size as usize);
+        conn.close();
+    });
+    let pid = child.id().to_string();
+    assert!(Command::new("kill")
+        .args(["-HUP", &pid])
+        .status()
+        .unwrap()
+        .success());
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(health("/healthz"), "still alive after SIGHUP");
+    assert!(Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .unwrap()
+        .success());
+    let status = child.wait().unwrap();
+    assert!(status.success(), "{status:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tenant_bandwidth_is_paced_then_rate_limited_and_cancel_is_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    cfg.tenants[0].max_in_flight = 64;
+    cfg.tenants[0].max_bytes_per_second = 4000;
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    assert_eq!(welcome.limits.max_bytes_per_second, 4000);
+    let (off, size) = recs[0];
+    let handles: Vec<_> = (0..20).map(|i| conn.spawn_fetch(i, off, size)).collect();
+    let (mut ok, mut limited) = (0, 0);
+    for hdl in handles {
+        match hdl.join().await {
+            Ok(b) => {
+                assert_eq!(b.len(), size as usize);
+                ok += 1
+            }
+            Err(NetError::Server(e)) if e.code == ErrorCode::RateLimited => limited += 1,
+            Err(e) => panic!("{e:?}"),
+        }
+    }
+    assert!(ok >= 3 && limited >= 1, "ok {ok} limited {limited}");
+    // A paced request that the client cancels is counted as cancelled.
+    tokio::time::sleep(Duration::from_millis(2600)).await;
+    let filler: Vec<_> = (100..105).map(|i| conn.spawn_fetch(i, off, size)).collect();
+    // Let the fillers reserve the bucket first, so the victim is paced.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let victim = conn.spawn_fetch(200, off, size);
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    if victim.is_finished() {
+        panic!(
+            "victim finished early: {:?} size {size}",
+            victim.join().await
+        );
+    }
+    victim.cancel();
+    let r = victim.join().await;
+    assert!(matches!(r, Err(NetError::Cancelled)), "{r:?}");
+    for f in filler {
+        let _ = f.join().await;
+    }
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "cancelled")]) >= 1.0
+    })
+    .await;
+    assert_eq!(
+        metric(
+            &text,
+            "planet_requests_total",
+            &[("outcome", "rate_limited")]
+        ),
+        f64::from(limited)
+    );
+    h.shutdown().await;
+}
