@@ -1,1 +1,46 @@
-//! placeholder
+//! Streaming client for planet databases: partial tree, importance, request
+//! queue and per-frame selection (no GPU, no network).
+//!
+//! Implements thesis chapter 3 (§3.4–3.6, Alg. 3.1) and the 3D / planetary
+//! parts of chapter 4 (§4.2.4, §4.3, §4.4.1, §4.5.4), each concept in one
+//! module:
+//!
+//! - [`tree`]: the two linked partial trees, split / merge / refine,
+//!   neighbours by lookup (Alg. 4.1), level-difference and binding
+//!   constraints, `validate()`.
+//! - [`importance`]: Eq. 3.2–3.4, LOD selection, triggers, screen-space error.
+//! - [`quality`]: the quality-factor controller (frame rate or triangle budget).
+//! - [`visibility`]: camera, frustum, horizon-fitted near/far (Eq. 4.3) and
+//!   horizon occlusion.
+//! - [`request_queue`]: fixed-size priority queues with per-frame
+//!   resubmission and cancellation (§3.5.2).
+//! - [`selection`]: the per-frame traversal (draw list, triggers).
+//! - [`client`]: the frame loop, decode workers, and the interface a network
+//!   layer and a renderer drive.
+//! - [`stats`]: per-frame and cumulative statistics.
+//! - [`testdb`]: a synthetic in-memory database and fake server.
+//!
+//! **Driving it.** Each frame: `let out = client.frame(&camera, dt);` draw
+//! `out.draw`, send every `out.send` request (`record.offset`, `record.size`)
+//! and cancel every id in `out.cancel`; whenever a response (or an error)
+//! arrives, call `client.deliver(id, result)` from the same thread.
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod client;
+pub mod importance;
+pub mod net;
+pub mod quality;
+pub mod request_queue;
+pub mod selection;
+pub mod stats;
+pub mod streaming;
+pub mod testdb;
+pub mod tls;
+pub mod trajectory;
+pub mod tree;
+pub mod visibility;
+
+pub use client::{Client, ClientConfig, ClientError, FrameOutput, Outgoing, TransportError};
+pub use selection::{ColourBinding, DrawBlock, NeighbourLod};
+pub use visibility::Camera;

@@ -1,0 +1,447 @@
+//! The per-frame client loop: apply finished work, select, request.
+//!
+//! Implements thesis Alg. 3.1 and the threading of §3.5.2 (thesis-notes
+//! §5.5, §6.6), driven by the caller instead of owning threads for the
+//! network:
+//!
+//! 1. at frame start, apply the refines finished by the decode workers and
+//!    execute the split/merge operations selected last frame (re-checking
+//!    their constraints), so a frame never sees half a change;
+//! 2. update the quality factor from the previous frame's measurement;
+//! 3. traverse both trees ([`crate::selection`]) with the horizon-fitted view;
+//! 4. select load requests ([`crate::request_queue`]): new ones to send,
+//!    in-flight ones to cancel; select the split/merge operations for the
+//!    next frame start.
+//!
+//! The network layer sends each [`Outgoing`] request (one stream per request
+//! in QUIC), cancels each id of [`FrameOutput::cancel`], and hands every
+//! response (or failure) to [`Client::deliver`]. Decoding (lz4 + codec) runs
+//! on `decode_threads` worker threads (std threads and channels); with 0
+//! threads it runs inline in `deliver`, which is deterministic (tests).
+//! A response whose id is unknown (cancelled), whose block was merged away or
+//! already has LOD 0 is dropped and counted; a record that fails to parse,
+//! check or decode is rejected and its block is requested again by a later
+//! frame's selection.
+
+use crate::quality::{QualityConfig, QualityController};
+use crate::request_queue::{select_tree_ops, OpKind, QueueConfig, RequestQueue, TreeOp};
+use crate::selection::{select, DrawBlock};
+use crate::stats::{FrameStats, Totals};
+use crate::tree::{decode_record, Decoded, FirstLod, HeaderError, PartialTree, RefineError};
+use crate::visibility::{Camera, View};
+use planet_core::format::{ChildRef, Header, Tree};
+use planet_core::BlockId;
+use std::collections::HashSet;
+use std::sync::mpsc::{channel, Receiver, Sender};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use thiserror::Error;
+
+/// Client parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ClientConfig {
+    /// The load request queue.
+    pub queue: QueueConfig,
+    /// Split/merge operations executed per frame at most.
+    pub tree_ops_per_frame: usize,
+    /// Decode worker threads (0: decode inline in [`Client::deliver`]).
+    pub decode_threads: usize,
+    /// The quality-factor controller.
+    pub quality: QualityConfig,
+}
+
+impl Default for ClientConfig {
+    fn default() -> Self {
+        ClientConfig {
+            queue: QueueConfig::default(),
+            tree_ops_per_frame: 64,
+            decode_threads: 2,
+            quality: QualityConfig::default(),
+        }
+    }
+}
+
+/// Why a client cannot start.
+#[derive(Debug, Error)]
+pub enum ClientError {
+    /// The header is unusable.
+    #[error(transparent)]
+    Header(#[from] HeaderError),
+    /// A decode worker could not be started.
+    #[error("cannot start decode worker: {0}")]
+    Thread(String),
+}
+
+/// A failed request, as reported by the network layer.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+#[error("transport error: {0}")]
+pub struct TransportError(pub String);
+
+/// A request to send.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Outgoing {
+    /// Request id, echoed in [`Client::deliver`].
+    pub id: u64,
+    /// The record to fetch (`offset`, `size`).
+    pub record: ChildRef,
+    /// Its tree.
+    pub tree: Tree,
+    /// Its block.
+    pub block: BlockId,
+    /// Request importance (a transport may use it as stream priority).
+    pub importance: f64,
+    /// Forced by a neighbour's split (visibility ignored, §4.3.3).
+    pub forced: bool,
+}
+
+/// What one frame produced.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameOutput {
+    /// Blocks to draw, with LODs, neighbour LOD differences and colour.
+    pub draw: Vec<DrawBlock>,
+    /// New requests to send.
+    pub send: Vec<Outgoing>,
+    /// In-flight request ids to cancel.
+    pub cancel: Vec<u64>,
+    /// Statistics.
+    pub stats: FrameStats,
+}
+
+struct Job {
+    tree: Tree,
+    block: BlockId,
+    width: usize,
+    bytes: Vec<u8>,
+    first: FirstLod,
+}
+
+struct Done {
+    tree: Tree,
+    block: BlockId,
+    bytes: usize,
+    result: Result<Decoded, RefineError>,
+}
+
+fn run_job(job: Job) -> Done {
+    let result = decode_record(job.tree, job.block, job.width, &job.bytes, job.first);
+    Done {
+        tree: job.tree,
+        block: job.block,
+        bytes: job.bytes.len(),
+        result,
+    }
+}
+
+type Outstanding = Arc<(Mutex<usize>, Condvar)>;
+
+/// The streaming client (no network, no GPU).
+pub struct Client {
+    tree: PartialTree,
+    queue: RequestQueue,
+    quality: QualityController,
+    config: ClientConfig,
+    r_min: f64,
+    r_max: f64,
+    pending_ops: Vec<TreeOp>,
+    decoding: HashSet<(Tree, BlockId)>,
+    jobs: Option<Sender<Job>>,
+    done_rx: Receiver<Done>,
+    done_tx: Sender<Done>,
+    outstanding: Outstanding,
+    workers: Vec<JoinHandle<()>>,
+    frame: u64,
+    last_triangles: u64,
+    since_last: FrameStats,
+    totals: Totals,
+    last_error: Option<String>,
+}
+
+impl Client {
+    /// A client for the database described by `header`.
+    pub fn new(header: Header, config: ClientConfig) -> Result<Client, ClientError> {
+        let r_min = (header.datum.polar_radius() + (header.min_elevation as f64).min(0.0)).max(0.0);
+        let r_max = header.datum.equatorial_radius() + (header.max_elevation as f64).max(0.0);
+        let tree = PartialTree::new(Arc::new(header))?;
+        let (done_tx, done_rx) = channel::<Done>();
+        let outstanding: Outstanding = Arc::new((Mutex::new(0), Condvar::new()));
+        let mut workers = vec![];
+        let jobs = if config.decode_threads > 0 {
+            let (tx, rx) = channel::<Job>();
+            let rx = Arc::new(Mutex::new(rx));
+            for k in 0..config.decode_threads {
+                let rx = rx.clone();
+                let done = done_tx.clone();
+                let outstanding = outstanding.clone();
+                let h = std::thread::Builder::new()
+                    .name(format!("planet-decode-{k}"))
+                    .spawn(move || loop {
+                        let job = match rx.lock() {
+                            Ok(r) => r.recv(),
+                            Err(_) => return,
+                        };
+                        let Ok(job) = job else { return };
+                        let d = run_job(job);
+                        let _ = done.send(d);
+                        let (m, cv) = &*outstanding;
+                        if let Ok(mut n) = m.lock() {
+                            *n = n.saturating_sub(1);
+                            cv.notify_all();
+                        }
+                    })
+                    .map_err(|e| ClientError::Thread(e.to_string()))?;
+                workers.push(h);
+            }
+            Some(tx)
+        } else {
+            None
+        };
+        Ok(Client {
+            tree,
+            queue: RequestQueue::new(config.queue),
+            quality: QualityController::new(config.quality),
+            config,
+            r_min,
+            r_max,
+            pending_ops: vec![],
+            decoding: HashSet::new(),
+            jobs,
+            done_rx,
+            done_tx,
+            outstanding,
+            workers,
+            frame: 0,
+            last_triangles: 0,
+            since_last: FrameStats::default(),
+            totals: Totals::default(),
+            last_error: None,
+        })
+    }
+
+    /// The partial tree.
+    pub fn tree(&self) -> &PartialTree {
+        &self.tree
+    }
+
+    /// The request queue.
+    pub fn queue(&self) -> &RequestQueue {
+        &self.queue
+    }
+
+    /// The current quality factor.
+    pub fn quality_factor(&self) -> f64 {
+        self.quality.qf()
+    }
+
+    /// The quality controller (e.g. to change its mode).
+    pub fn quality_mut(&mut self) -> &mut QualityController {
+        &mut self.quality
+    }
+
+    /// Min and max planet radii used for the horizon.
+    pub fn radii(&self) -> (f64, f64) {
+        (self.r_min, self.r_max)
+    }
+
+    /// Cumulative statistics.
+    pub fn totals(&self) -> Totals {
+        self.totals
+    }
+
+    /// The last rejection reason, if any.
+    pub fn last_error(&self) -> Option<&str> {
+        self.last_error.as_deref()
+    }
+
+    /// Split/merge operations waiting for the next frame start.
+    pub fn pending_ops(&self) -> &[TreeOp] {
+        &self.pending_ops
+    }
+
+    /// Blocks whose records are being decoded.
+    pub fn decoding(&self) -> usize {
+        self.decoding.len()
+    }
+
+    /// Block until every record handed to the workers has been decoded (for
+    /// tests and benchmarks; a renderer never needs to wait).
+    pub fn wait_for_decodes(&self) {
+        let (m, cv) = &*self.outstanding;
+        let Ok(mut n) = m.lock() else { return };
+        while *n > 0 {
+            n = match cv.wait(n) {
+                Ok(n) => n,
+                Err(_) => return,
+            };
+        }
+    }
+
+    /// Hand over the response to request `id` (or its failure).
+    pub fn deliver(&mut self, id: u64, result: Result<Vec<u8>, TransportError>) {
+        let Some(req) = self.queue.take(id) else {
+            if let Ok(b) = &result {
+                self.since_last.bytes_received += b.len() as u64;
+                self.since_last.bytes_dropped += b.len() as u64;
+            }
+            return;
+        };
+        let bytes = match result {
+            Ok(b) => b,
+            Err(e) => {
+                self.last_error = Some(e.to_string());
+                return;
+            }
+        };
+        self.since_last.bytes_received += bytes.len() as u64;
+        let width = self.tree.tree(req.tree).map_or(0, |t| t.width);
+        let Some(first) = self.tree.first_lod(req.tree, &req.block) else {
+            self.since_last.bytes_dropped += bytes.len() as u64;
+            return;
+        };
+        let job = Job {
+            tree: req.tree,
+            block: req.block,
+            width,
+            bytes,
+            first,
+        };
+        self.decoding.insert((req.tree, req.block));
+        match &self.jobs {
+            Some(tx) => {
+                {
+                    let (m, _) = &*self.outstanding;
+                    if let Ok(mut n) = m.lock() {
+                        *n += 1;
+                    }
+                }
+                if let Err(e) = tx.send(job) {
+                    let (m, _) = &*self.outstanding;
+                    if let Ok(mut n) = m.lock() {
+                        *n = n.saturating_sub(1);
+                    }
+                    let _ = self.done_tx.send(run_job(e.0));
+                }
+            }
+            None => {
+                let _ = self.done_tx.send(run_job(job));
+            }
+        }
+    }
+
+    /// One frame: apply finished work, select, request.
+    pub fn frame(&mut self, camera: &Camera, dt: f64) -> FrameOutput {
+        self.frame += 1;
+        let mut stats = std::mem::take(&mut self.since_last);
+        stats.frame = self.frame;
+        // 1. Finished refines.
+        let mut applied: Vec<(Tree, BlockId, usize)> = vec![];
+        while let Ok(d) = self.done_rx.try_recv() {
+            self.decoding.remove(&(d.tree, d.block));
+            match d.result {
+                Ok(dec) => {
+                    if self.tree.apply_refine(dec) {
+                        stats.refines_applied += 1;
+                        applied.push((d.tree, d.block, d.bytes));
+                    } else {
+                        stats.bytes_dropped += d.bytes as u64;
+                    }
+                }
+                Err(e) => {
+                    stats.records_rejected += 1;
+                    self.totals.bytes_rejected += d.bytes as u64;
+                    self.last_error = Some(format!("{:?} {:?}: {e}", d.tree, d.block));
+                }
+            }
+        }
+        // 1b. Split/merge selected last frame, constraints re-checked.
+        for op in std::mem::take(&mut self.pending_ops) {
+            let r = match op.kind {
+                OpKind::Split => self.tree.split(op.tree, &op.block),
+                OpKind::Merge => self.tree.merge(op.tree, &op.block),
+            };
+            if r.is_ok() {
+                match op.kind {
+                    OpKind::Split => stats.splits += 1,
+                    OpKind::Merge => stats.merges += 1,
+                }
+            }
+        }
+        // 2. Quality factor.
+        let qf = self.quality.update(dt, self.last_triangles as f64);
+        // 3. Selection.
+        let view = View::new(camera, self.r_min, self.r_max);
+        let sel = select(&self.tree, &view, qf);
+        // 4. Requests.
+        let tree = &self.tree;
+        let mut cancel = self.queue.retain_relevant(|t, b| tree.wants_refine(t, b));
+        let loads = sel
+            .loads
+            .into_iter()
+            .filter(|r| !self.decoding.contains(&(r.tree, r.block)))
+            .collect();
+        let chosen = self.queue.select(loads);
+        cancel.extend(chosen.cancel);
+        let send: Vec<Outgoing> = chosen
+            .send
+            .into_iter()
+            .map(|(id, r)| Outgoing {
+                id,
+                record: r.record,
+                tree: r.tree,
+                block: r.block,
+                importance: r.importance,
+                forced: r.forced,
+            })
+            .collect();
+        self.pending_ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
+        // Stats.
+        let draw = sel.draw;
+        for (t, b, bytes) in &applied {
+            let used = match t {
+                Tree::Elevation => draw.iter().any(|d| d.block == *b && d.lod == 0),
+                Tree::Colour => draw
+                    .iter()
+                    .any(|d| d.colour.is_some_and(|c| c.block == *b && c.lod == 0)),
+            };
+            if used {
+                self.totals.bytes_relevant += *bytes as u64;
+            }
+        }
+        self.last_triangles = sel.triangles;
+        stats.blocks_drawn = draw.len();
+        stats.triangles = sel.triangles;
+        stats.quality_factor = qf;
+        stats.in_flight = self.queue.in_flight();
+        stats.sent = send.len();
+        stats.cancelled = cancel.len();
+        if !draw.is_empty() {
+            stats.max_screen_error = draw.iter().map(|d| d.screen_error).fold(0.0, f64::max);
+            stats.mean_screen_error =
+                draw.iter().map(|d| d.screen_error).sum::<f64>() / draw.len() as f64;
+        }
+        stats.nodes = self.tree.node_count();
+        stats.near = view.near;
+        stats.far = view.far;
+        self.totals.sent += send.len() as u64;
+        self.totals.cancelled += cancel.len() as u64;
+        self.totals.bytes_received += stats.bytes_received;
+        self.totals.bytes_dropped += stats.bytes_dropped;
+        self.totals.refines_applied += stats.refines_applied as u64;
+        self.totals.records_rejected += stats.records_rejected as u64;
+        stats.totals = self.totals;
+        FrameOutput {
+            draw,
+            send,
+            cancel,
+            stats,
+        }
+    }
+}
+
+impl Drop for Client {
+    fn drop(&mut self) {
+        self.jobs = None;
+        for h in self.workers.drain(..) {
+            let _ = h.join();
+        }
+    }
+}

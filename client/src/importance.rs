@@ -1,0 +1,142 @@
+//! Importance of blocks, LOD selection, triggers and screen-space error.
+//!
+//! Implements thesis Eq. 3.2–3.4 (§3.6.2–3.6.4) specialised to 3D (§4.2.4,
+//! thesis-notes §6.2, §6.4, §6.5):
+//!
+//! ```text
+//! distance   = |eye − centre of block bounding box| − blockRadius
+//! quality    = sqrt(QF) · blockRadius / (blockWidth · distance)
+//! importance = −log2(quality)
+//! ```
+//!
+//! `blockRadius` [VAGUE in the thesis] is the footprint radius of
+//! [`crate::visibility::BlockBounds`]. The "large negative constant" for
+//! `distance ≤ 0` [VAGUE] is [`IMPORTANCE_NEAR`] `= −64`; importance is clamped
+//! to `[−64, 64]` so it is finite for any input (QF 0, non-finite distances,
+//! eye at the centre of the planet or 1e12 m away).
+//!
+//! LOD selection: `ceil(importance)` clamped to `[0, 1]` (`subDepth = 1`).
+//! Triggers (Eq. 3.4): refine when the selected LOD is finer than the one
+//! available (request importance `usedLOD − importance`); split a fully
+//! loaded leaf when `importance < −1` (virtual LOD −1; request importance
+//! `−importance`); merge a split block when `ceil(importance) ≥ 1` (its last
+//! LOD is not selected; request importance `importance`).
+//!
+//! Screen-space error (for measurement): `ρ = ε·H / (2·d·tan(fov/2))`.
+
+/// Importance given to a block whose distance is not positive or finite.
+pub const IMPORTANCE_NEAR: f64 = -64.0;
+/// Largest importance (QF 0, infinitely far).
+pub const IMPORTANCE_FAR: f64 = 64.0;
+/// Split threshold: the virtual LOD −1 of Eq. 3.4.
+pub const SPLIT_THRESHOLD: f64 = -1.0;
+
+/// Distance from the eye to the closest possible point of a block
+/// (`|eye − centre| − radius`).
+pub fn block_distance(eye: glam::DVec3, centre: glam::DVec3, radius: f64) -> f64 {
+    (eye - centre).length() - radius
+}
+
+/// Importance of a block (Eq. 3.2, 3.3), always finite, in `[−64, 64]`.
+pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -> f64 {
+    if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return IMPORTANCE_NEAR;
+    }
+    let q1 = if qf.is_finite() {
+        qf.max(0.0).sqrt()
+    } else {
+        f64::MAX.sqrt()
+    };
+    let quality = q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance);
+    if quality.is_nan() {
+        return IMPORTANCE_NEAR;
+    }
+    if quality <= 0.0 {
+        return IMPORTANCE_FAR;
+    }
+    (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
+}
+
+/// The LOD to render: `ceil(importance)` clamped to `[0, 1]`.
+pub fn selected_lod(importance: f64) -> u8 {
+    if importance.ceil() >= 1.0 {
+        1
+    } else {
+        0
+    }
+}
+
+/// Request importance of a refine from `used_lod` (Eq. 3.4 family).
+pub fn refine_importance(used_lod: u8, importance: f64) -> f64 {
+    used_lod as f64 - importance
+}
+
+/// Whether a fully loaded leaf should split (virtual LOD −1).
+pub fn wants_split(importance: f64) -> bool {
+    importance < SPLIT_THRESHOLD
+}
+
+/// Request importance of a split.
+pub fn split_importance(importance: f64) -> f64 {
+    -importance
+}
+
+/// Whether a split block should merge: a LOD other than its last suffices.
+pub fn wants_merge(importance: f64) -> bool {
+    importance.ceil() >= 1.0
+}
+
+/// Screen-space error in pixels of a geometric error `error` metres seen at
+/// `distance` metres: `ε·H / (2·d·tan(fov_y/2))`, finite for any input.
+pub fn screen_space_error(error: f64, distance: f64, viewport_height_px: f64, fov_y: f64) -> f64 {
+    let d = if distance.is_finite() {
+        distance.max(1e-3)
+    } else {
+        f64::MAX
+    };
+    let t = (fov_y * 0.5).tan().abs().max(1e-9);
+    let e = if error.is_finite() {
+        error.max(0.0)
+    } else {
+        0.0
+    };
+    let rho = e * viewport_height_px.max(0.0) / (2.0 * d * t);
+    if rho.is_finite() {
+        rho
+    } else {
+        f64::MAX
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn finite_and_monotone(d1 in -1e13f64..1e13, d2 in -1e13f64..1e13, r in 0.0f64..1e7, qf in prop_oneof![Just(0.0), 0.0f64..1e12, Just(f64::INFINITY)]) {
+            let (a, b) = (importance(d1, r, 64.0, qf), importance(d2, r, 64.0, qf));
+            prop_assert!(a.is_finite() && b.is_finite());
+            if d1 <= d2 { prop_assert!(a <= b); }
+            prop_assert!(screen_space_error(3.0, d1, 1080.0, 1.0).is_finite());
+        }
+    }
+
+    #[test]
+    fn thresholds() {
+        // Child (half radius) at the same distance is one unit more important.
+        let p = importance(1000.0, 100.0, 64.0, 1e4);
+        let c = importance(1000.0, 50.0, 64.0, 1e4);
+        assert!((c - p - 1.0).abs() < 1e-12);
+        assert_eq!(selected_lod(0.5), 1);
+        assert_eq!(selected_lod(0.0), 0);
+        assert_eq!(selected_lod(-3.0), 0);
+        assert!(wants_split(-1.5) && !wants_split(-1.0));
+        assert!(wants_merge(0.1) && !wants_merge(0.0));
+        assert_eq!(importance(0.0, 1.0, 64.0, 1.0), IMPORTANCE_NEAR);
+        assert_eq!(importance(f64::NAN, 1.0, 64.0, 1.0), IMPORTANCE_NEAR);
+        assert_eq!(importance(1.0, 1.0, 64.0, 0.0), IMPORTANCE_FAR);
+        assert!(importance(f64::INFINITY, 1.0, 64.0, 1.0).is_finite());
+    }
+}

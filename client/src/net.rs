@@ -1,0 +1,784 @@
+//! QUIC transport of the planet protocol (client side).
+//!
+//! - [`Connection`]: one QUIC connection: control-stream handshake, then
+//!   [`Connection::fetch`] per record (one bidirectional stream each).
+//!   Dropping a fetch future, or [`FetchHandle::cancel`], stops the stream
+//!   with `STREAM_CANCELLED` so the server stops sending.
+//! - [`Session`] / [`SessionHandle`]: a reconnecting wrapper running on a
+//!   tokio runtime, driven from synchronous code (e.g. a per-frame loop)
+//!   through non-blocking channels: `request`, `cancel`, `poll_events`.
+//!
+//! TLS configurations come from [`crate::tls`].
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use planet_protocol::{
+    quic, ClientHandshake, ErrorCode, ErrorMsg, FrameDecoder, HandshakeOutcome, Hello, LodRequest,
+    Message, ProtocolError, Response, ResponseDecoder, Welcome,
+};
+use quinn::VarInt;
+use tokio::sync::{mpsc, watch};
+use tokio::task::{JoinHandle, JoinSet};
+
+/// Why a connection or a fetch failed.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum NetError {
+    /// The server answered the request with an error head.
+    #[error("server error: {0}")]
+    Server(ErrorMsg),
+    /// The server refused the handshake (`Error` on the control stream).
+    #[error("handshake rejected: {0}")]
+    Rejected(ErrorMsg),
+    /// The connection is gone (closed by the server, idle timeout, network).
+    #[error("connection lost: {reason}")]
+    ConnectionLost {
+        /// The server's close code, when it closed with a protocol code
+        /// (e.g. `ServerBusy`, `ShuttingDown`).
+        code: Option<ErrorCode>,
+        /// Description.
+        reason: String,
+    },
+    /// A local timeout (connect or fetch) expired.
+    #[error("timed out")]
+    Timeout,
+    /// The server reset the response stream with this code.
+    #[error("stream reset by the server (code {0})")]
+    Reset(u64),
+    /// The server's bytes violate the protocol.
+    #[error("protocol error: {0}")]
+    Protocol(ProtocolError),
+    /// Endpoint or TLS setup failed.
+    #[error("cannot connect: {0}")]
+    Connect(String),
+    /// The request was cancelled locally.
+    #[error("cancelled")]
+    Cancelled,
+    /// The session is not connected (request while reconnecting).
+    #[error("not connected")]
+    NotConnected,
+}
+
+impl NetError {
+    /// The protocol error code, when there is one (server error head,
+    /// handshake rejection, close or reset code).
+    pub fn code(&self) -> Option<ErrorCode> {
+        match self {
+            NetError::Server(e) | NetError::Rejected(e) => Some(e.code),
+            NetError::ConnectionLost { code, .. } => *code,
+            NetError::Reset(c) => ErrorCode::from_quic(*c),
+            NetError::Protocol(p) => Some(p.code()),
+            _ => None,
+        }
+    }
+
+    /// True if the connection is unusable (reconnect), false for a
+    /// per-request failure.
+    pub fn is_connection_error(&self) -> bool {
+        matches!(
+            self,
+            NetError::ConnectionLost { .. } | NetError::Connect(_) | NetError::NotConnected
+        )
+    }
+}
+
+impl From<ProtocolError> for NetError {
+    fn from(e: ProtocolError) -> Self {
+        NetError::Protocol(e)
+    }
+}
+
+impl From<quinn::ConnectionError> for NetError {
+    fn from(e: quinn::ConnectionError) -> Self {
+        let code = match &e {
+            quinn::ConnectionError::ApplicationClosed(c) => {
+                ErrorCode::from_quic(c.error_code.into_inner())
+            }
+            _ => None,
+        };
+        NetError::ConnectionLost {
+            code,
+            reason: e.to_string(),
+        }
+    }
+}
+
+impl From<quinn::WriteError> for NetError {
+    fn from(e: quinn::WriteError) -> Self {
+        match e {
+            quinn::WriteError::ConnectionLost(c) => c.into(),
+            quinn::WriteError::Stopped(code) => NetError::Reset(code.into_inner()),
+            other => NetError::ConnectionLost {
+                code: None,
+                reason: other.to_string(),
+            },
+        }
+    }
+}
+
+impl From<quinn::ReadError> for NetError {
+    fn from(e: quinn::ReadError) -> Self {
+        match e {
+            quinn::ReadError::ConnectionLost(c) => c.into(),
+            quinn::ReadError::Reset(code) => NetError::Reset(code.into_inner()),
+            other => NetError::ConnectionLost {
+                code: None,
+                reason: other.to_string(),
+            },
+        }
+    }
+}
+
+/// Connection tuning.
+#[derive(Clone)]
+pub struct ConnectOptions {
+    /// Limit on the QUIC + TLS handshake and the protocol handshake.
+    pub connect_timeout: Duration,
+    /// Limit on one fetch; `None` = no limit beyond the connection's.
+    pub fetch_timeout: Option<Duration>,
+    /// QUIC transport parameters; `None` = [`default_transport`].
+    pub transport: Option<Arc<quinn::TransportConfig>>,
+}
+
+impl Default for ConnectOptions {
+    fn default() -> Self {
+        ConnectOptions {
+            connect_timeout: Duration::from_secs(5),
+            fetch_timeout: Some(Duration::from_secs(30)),
+            transport: None,
+        }
+    }
+}
+
+impl std::fmt::Debug for ConnectOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ConnectOptions")
+            .field("connect_timeout", &self.connect_timeout)
+            .field("fetch_timeout", &self.fetch_timeout)
+            .field("custom_transport", &self.transport.is_some())
+            .finish()
+    }
+}
+
+/// Client transport defaults: keep-alive under the server's idle timeout,
+/// no unidirectional streams.
+pub fn default_transport() -> Arc<quinn::TransportConfig> {
+    let mut t = quinn::TransportConfig::default();
+    t.keep_alive_interval(Some(Duration::from_secs(5)));
+    t.max_concurrent_uni_streams(VarInt::from_u32(0));
+    if let Ok(idle) = quinn::IdleTimeout::try_from(Duration::from_secs(30)) {
+        t.max_idle_timeout(Some(idle));
+    }
+    Arc::new(t)
+}
+
+struct Inner {
+    // Kept so the endpoint (and its socket) lives as long as the connection.
+    _endpoint: quinn::Endpoint,
+    conn: quinn::Connection,
+    // Kept open for the life of the connection: dropping it would finish the
+    // control stream, which ends the session on the server.
+    ctrl_send: Mutex<Option<quinn::SendStream>>,
+    goodbye: watch::Receiver<Option<ErrorCode>>,
+    ctrl_task: JoinHandle<()>,
+    welcome: Welcome,
+    fetch_timeout: Option<Duration>,
+}
+
+impl Drop for Inner {
+    fn drop(&mut self) {
+        self.ctrl_task.abort();
+        self.conn
+            .close(VarInt::from_u32(quic::CONNECTION_CLOSED_NORMAL), b"done");
+    }
+}
+
+/// A connected, welcomed planet session on one QUIC connection. Cheap to
+/// clone (shared); the connection closes when the last clone is dropped or
+/// on [`Connection::close`].
+#[derive(Clone)]
+pub struct Connection {
+    inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Connection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Connection")
+            .field("remote", &self.inner.conn.remote_address())
+            .field("database", &self.inner.welcome.database)
+            .finish()
+    }
+}
+
+impl Connection {
+    /// Connects with default [`ConnectOptions`].
+    pub async fn connect(
+        addr: SocketAddr,
+        server_name: &str,
+        tls: Arc<rustls::ClientConfig>,
+        hello: Hello,
+    ) -> Result<(Connection, Welcome), NetError> {
+        Self::connect_with(addr, server_name, tls, hello, &ConnectOptions::default()).await
+    }
+
+    /// Opens a QUIC connection (client endpoint on an ephemeral port of the
+    /// address family of `addr`), opens the control stream, sends `hello`
+    /// and waits for `Welcome`.
+    pub async fn connect_with(
+        addr: SocketAddr,
+        server_name: &str,
+        tls: Arc<rustls::ClientConfig>,
+        hello: Hello,
+        opts: &ConnectOptions,
+    ) -> Result<(Connection, Welcome), NetError> {
+        let fut = Self::connect_inner(addr, server_name, tls, hello, opts);
+        match tokio::time::timeout(opts.connect_timeout, fut).await {
+            Ok(r) => r,
+            Err(_) => Err(NetError::Timeout),
+        }
+    }
+
+    async fn connect_inner(
+        addr: SocketAddr,
+        server_name: &str,
+        tls: Arc<rustls::ClientConfig>,
+        hello: Hello,
+        opts: &ConnectOptions,
+    ) -> Result<(Connection, Welcome), NetError> {
+        let bind: SocketAddr = if addr.is_ipv6() {
+            (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+        } else {
+            (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
+        };
+        let mut endpoint =
+            quinn::Endpoint::client(bind).map_err(|e| NetError::Connect(e.to_string()))?;
+        let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls)
+            .map_err(|e| NetError::Connect(e.to_string()))?;
+        let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
+        cfg.transport_config(opts.transport.clone().unwrap_or_else(default_transport));
+        endpoint.set_default_client_config(cfg);
+        let conn = endpoint
+            .connect(addr, server_name)
+            .map_err(|e| NetError::Connect(e.to_string()))?
+            .await?;
+        let (mut send, mut recv) = conn.open_bi().await?;
+        let (mut hs, bytes) = ClientHandshake::new(hello)?;
+        send.write_all(&bytes).await?;
+        let welcome = loop {
+            match recv.read_chunk(64 * 1024, true).await {
+                Ok(Some(chunk)) => match hs.receive(&chunk.bytes)? {
+                    Some(HandshakeOutcome::Welcomed(w)) => break w,
+                    Some(HandshakeOutcome::Rejected(e)) => return Err(NetError::Rejected(e)),
+                    None => {}
+                },
+                Ok(None) => {
+                    hs.finish()?;
+                    return Err(NetError::Protocol(ProtocolError::UnexpectedEnd {
+                        during: "before Welcome",
+                    }));
+                }
+                Err(e) => return Err(e.into()),
+            }
+        };
+        let (goodbye_tx, goodbye) = watch::channel(None);
+        let ctrl_task = tokio::spawn(read_control(recv, hs.into_decoder(), goodbye_tx));
+        let inner = Inner {
+            _endpoint: endpoint,
+            conn,
+            ctrl_send: Mutex::new(Some(send)),
+            goodbye,
+            ctrl_task,
+            welcome: welcome.clone(),
+            fetch_timeout: opts.fetch_timeout,
+        };
+        Ok((
+            Connection {
+                inner: Arc::new(inner),
+            },
+            welcome,
+        ))
+    }
+
+    /// The server's welcome (header, file size, limits).
+    pub fn welcome(&self) -> &Welcome {
+        &self.inner.welcome
+    }
+
+    /// The server's address.
+    pub fn remote_address(&self) -> SocketAddr {
+        self.inner.conn.remote_address()
+    }
+
+    /// `Some(reason)` once the server sent `Goodbye`.
+    pub fn goodbye(&self) -> Option<ErrorCode> {
+        *self.inner.goodbye.borrow()
+    }
+
+    /// The underlying quinn connection (advanced use, tests).
+    pub fn quinn(&self) -> &quinn::Connection {
+        &self.inner.conn
+    }
+
+    /// Resolves when the connection is closed, with the reason.
+    pub async fn closed(&self) -> NetError {
+        self.inner.conn.closed().await.into()
+    }
+
+    /// Sends `Goodbye{reason}`-free graceful close: finishes the control
+    /// stream and closes the connection with `CONNECTION_CLOSED_NORMAL`.
+    pub fn close(&self) {
+        if let Ok(mut g) = self.inner.ctrl_send.lock() {
+            if let Some(mut s) = g.take() {
+                let _ = s.finish();
+            }
+        }
+        self.inner
+            .conn
+            .close(VarInt::from_u32(quic::CONNECTION_CLOSED_NORMAL), b"bye");
+    }
+
+    /// Fetches the record at `offset` of `size` bytes. Dropping the future
+    /// cancels the request (`recv.stop(STREAM_CANCELLED)`).
+    pub async fn fetch(&self, id: u64, offset: u64, size: u32) -> Result<Vec<u8>, NetError> {
+        let fut = self.fetch_inner(LodRequest { id, offset, size });
+        match self.inner.fetch_timeout {
+            Some(t) => tokio::time::timeout(t, fut)
+                .await
+                .unwrap_or(Err(NetError::Timeout)),
+            None => fut.await,
+        }
+    }
+
+    /// Spawns [`Connection::fetch`] on the current tokio runtime and returns
+    /// a handle that can cancel it.
+    pub fn spawn_fetch(&self, id: u64, offset: u64, size: u32) -> FetchHandle {
+        let conn = self.clone();
+        let task = tokio::spawn(async move { conn.fetch(id, offset, size).await });
+        FetchHandle { id, task }
+    }
+
+    async fn fetch_inner(&self, req: LodRequest) -> Result<Vec<u8>, NetError> {
+        let (send, recv) = self.inner.conn.open_bi().await?;
+        let mut guard = StreamGuard {
+            send,
+            recv,
+            finished: false,
+            done: false,
+        };
+        let frame = req.encode_frame()?;
+        guard.send.write_all(&frame).await?;
+        let _ = guard.send.finish();
+        guard.finished = true;
+        let mut dec = ResponseDecoder::new(req);
+        loop {
+            match guard.recv.read_chunk(1 << 20, true).await {
+                Ok(Some(chunk)) => dec.push(&chunk.bytes)?,
+                Ok(None) => break,
+                Err(e) => {
+                    guard.done = true;
+                    return Err(e.into());
+                }
+            }
+        }
+        guard.done = true;
+        match dec.finish()? {
+            Response::Record { body, .. } => Ok(body),
+            Response::Error { error, .. } => Err(NetError::Server(error)),
+        }
+    }
+}
+
+/// Stops / resets a request stream that is abandoned before completion.
+struct StreamGuard {
+    send: quinn::SendStream,
+    recv: quinn::RecvStream,
+    finished: bool,
+    done: bool,
+}
+
+impl Drop for StreamGuard {
+    fn drop(&mut self) {
+        if !self.done {
+            let _ = self.recv.stop(VarInt::from_u32(quic::STREAM_CANCELLED));
+            if !self.finished {
+                let _ = self.send.reset(VarInt::from_u32(quic::STREAM_CANCELLED));
+            }
+        }
+    }
+}
+
+async fn read_control(
+    mut recv: quinn::RecvStream,
+    mut dec: FrameDecoder,
+    goodbye: watch::Sender<Option<ErrorCode>>,
+) {
+    loop {
+        loop {
+            match dec.next_frame() {
+                Ok(Some(Message::Goodbye(g))) => {
+                    tracing::info!(reason = %g.reason, "server said goodbye");
+                    let _ = goodbye.send(Some(g.reason));
+                }
+                Ok(Some(Message::Error(e))) => tracing::warn!(error = %e, "server error"),
+                Ok(Some(other)) => {
+                    tracing::debug!(msg = %other.msg_type(), "unexpected control message")
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    tracing::warn!(error = %e, "bad control stream from server");
+                    return;
+                }
+            }
+        }
+        match recv.read_chunk(64 * 1024, true).await {
+            Ok(Some(chunk)) => dec.push(&chunk.bytes),
+            Ok(None) | Err(_) => return,
+        }
+    }
+}
+
+/// A spawned fetch that can be cancelled.
+#[derive(Debug)]
+pub struct FetchHandle {
+    id: u64,
+    task: JoinHandle<Result<Vec<u8>, NetError>>,
+}
+
+impl FetchHandle {
+    /// The request id.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// Cancels the fetch: the stream is stopped with `STREAM_CANCELLED`.
+    pub fn cancel(&self) {
+        self.task.abort();
+    }
+
+    /// True once the fetch finished (or was cancelled).
+    pub fn is_finished(&self) -> bool {
+        self.task.is_finished()
+    }
+
+    /// Waits for the result; [`NetError::Cancelled`] after [`Self::cancel`].
+    pub async fn join(self) -> Result<Vec<u8>, NetError> {
+        match self.task.await {
+            Ok(r) => r,
+            Err(_) => Err(NetError::Cancelled),
+        }
+    }
+}
+
+/// What a [`SessionHandle`] reports.
+#[derive(Debug, Clone)]
+pub enum NetEvent {
+    /// (Re)connected; the welcome may differ after a reconnect (e.g. a new
+    /// database version).
+    Connected(Welcome),
+    /// A requested record arrived.
+    Record {
+        /// The request id.
+        id: u64,
+        /// The record bytes.
+        bytes: Vec<u8>,
+    },
+    /// A request failed; re-request it if still needed (after `Connected`
+    /// when `error.is_connection_error()`).
+    Failed {
+        /// The request id.
+        id: u64,
+        /// Why.
+        error: NetError,
+    },
+    /// The connection was lost; reconnecting with backoff.
+    Disconnected,
+    /// A request was cancelled by [`SessionHandle::cancel`].
+    Cancelled {
+        /// The request id.
+        id: u64,
+    },
+}
+
+/// Configuration of a reconnecting [`Session`].
+#[derive(Debug, Clone)]
+pub struct SessionConfig {
+    /// Server address.
+    pub addr: SocketAddr,
+    /// TLS server name (`localhost` for a dev certificate).
+    pub server_name: String,
+    /// TLS configuration (see [`crate::tls`]).
+    pub tls: Arc<rustls::ClientConfig>,
+    /// The hello sent on every (re)connection.
+    pub hello: Hello,
+    /// Connection options.
+    pub options: ConnectOptions,
+    /// First reconnect delay.
+    pub backoff_initial: Duration,
+    /// Largest reconnect delay.
+    pub backoff_max: Duration,
+}
+
+impl SessionConfig {
+    /// Defaults: backoff 100 ms doubling up to 5 s, with jitter.
+    pub fn new(
+        addr: SocketAddr,
+        server_name: impl Into<String>,
+        tls: Arc<rustls::ClientConfig>,
+        hello: Hello,
+    ) -> Self {
+        SessionConfig {
+            addr,
+            server_name: server_name.into(),
+            tls,
+            hello,
+            options: ConnectOptions::default(),
+            backoff_initial: Duration::from_millis(100),
+            backoff_max: Duration::from_secs(5),
+        }
+    }
+}
+
+enum Cmd {
+    Request { id: u64, offset: u64, size: u32 },
+    Cancel { id: u64 },
+    Close,
+}
+
+#[derive(Default)]
+struct Status {
+    connected: bool,
+    welcome: Option<Welcome>,
+    last_error: Option<NetError>,
+}
+
+/// A reconnecting session; see [`Session::spawn`].
+pub struct Session;
+
+/// Synchronous, non-blocking control of a [`Session`] running on a tokio
+/// runtime. Dropping it closes the session.
+pub struct SessionHandle {
+    cmd: mpsc::UnboundedSender<Cmd>,
+    events: crossbeam_channel::Receiver<NetEvent>,
+    status: Arc<Mutex<Status>>,
+    task: JoinHandle<()>,
+}
+
+impl Session {
+    /// Starts the session task on `runtime`: it connects, reconnects with
+    /// capped exponential backoff and jitter after any loss, and serves
+    /// requests. Requests issued while disconnected fail at once with
+    /// [`NetError::NotConnected`]; requests in flight when the link drops
+    /// fail with a connection error. Either way, re-request after
+    /// [`NetEvent::Connected`].
+    pub fn spawn(runtime: &tokio::runtime::Handle, cfg: SessionConfig) -> SessionHandle {
+        let (cmd, cmd_rx) = mpsc::unbounded_channel();
+        let (ev_tx, events) = crossbeam_channel::unbounded();
+        let status = Arc::new(Mutex::new(Status::default()));
+        let task = runtime.spawn(run_session(cfg, cmd_rx, ev_tx, Arc::clone(&status)));
+        SessionHandle {
+            cmd,
+            events,
+            status,
+            task,
+        }
+    }
+}
+
+impl SessionHandle {
+    /// Requests a record (non-blocking). The result arrives as
+    /// [`NetEvent::Record`] or [`NetEvent::Failed`].
+    pub fn request(&self, id: u64, offset: u64, size: u32) {
+        let _ = self.cmd.send(Cmd::Request { id, offset, size });
+    }
+
+    /// Cancels a request (non-blocking); [`NetEvent::Cancelled`] follows if
+    /// it was still in flight.
+    pub fn cancel(&self, id: u64) {
+        let _ = self.cmd.send(Cmd::Cancel { id });
+    }
+
+    /// All events received since the last call (never blocks).
+    pub fn poll_events(&self) -> Vec<NetEvent> {
+        self.events.try_iter().collect()
+    }
+
+    /// Blocks up to `timeout` for the next event. Do not call from a tokio
+    /// worker thread.
+    pub fn wait_event(&self, timeout: Duration) -> Option<NetEvent> {
+        self.events.recv_timeout(timeout).ok()
+    }
+
+    /// True while connected.
+    pub fn is_connected(&self) -> bool {
+        self.status.lock().map(|s| s.connected).unwrap_or(false)
+    }
+
+    /// The latest welcome.
+    pub fn welcome(&self) -> Option<Welcome> {
+        self.status.lock().ok().and_then(|s| s.welcome.clone())
+    }
+
+    /// The latest connection error (e.g. a rejected handshake).
+    pub fn last_error(&self) -> Option<NetError> {
+        self.status.lock().ok().and_then(|s| s.last_error.clone())
+    }
+
+    /// Closes the session (graceful close of the connection, no reconnect).
+    pub fn close(&self) {
+        let _ = self.cmd.send(Cmd::Close);
+    }
+}
+
+impl Drop for SessionHandle {
+    fn drop(&mut self) {
+        let _ = self.cmd.send(Cmd::Close);
+        if self.cmd.is_closed() {
+            self.task.abort();
+        }
+    }
+}
+
+fn set_status(status: &Mutex<Status>, f: impl FnOnce(&mut Status)) {
+    if let Ok(mut s) = status.lock() {
+        f(&mut s);
+    }
+}
+
+fn jittered(d: Duration) -> Duration {
+    // "Equal jitter": between half and all of the nominal delay.
+    d.mul_f64(0.5 + 0.5 * rand::random::<f64>())
+}
+
+async fn run_session(
+    cfg: SessionConfig,
+    mut cmd_rx: mpsc::UnboundedReceiver<Cmd>,
+    ev: crossbeam_channel::Sender<NetEvent>,
+    status: Arc<Mutex<Status>>,
+) {
+    let mut backoff = cfg.backoff_initial;
+    loop {
+        let connect = Connection::connect_with(
+            cfg.addr,
+            &cfg.server_name,
+            Arc::clone(&cfg.tls),
+            cfg.hello.clone(),
+            &cfg.options,
+        );
+        tokio::pin!(connect);
+        let result = loop {
+            tokio::select! {
+                r = &mut connect => break r,
+                c = cmd_rx.recv() => match c {
+                    None | Some(Cmd::Close) => return,
+                    Some(Cmd::Request { id, .. }) => {
+                        let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
+                    }
+                    Some(Cmd::Cancel { .. }) => {}
+                },
+            }
+        };
+        match result {
+            Ok((conn, welcome)) => {
+                backoff = cfg.backoff_initial;
+                set_status(&status, |s| {
+                    s.connected = true;
+                    s.welcome = Some(welcome.clone());
+                });
+                let _ = ev.send(NetEvent::Connected(welcome));
+                let user_closed = serve_session(&conn, &mut cmd_rx, &ev).await;
+                set_status(&status, |s| s.connected = false);
+                if user_closed {
+                    conn.close();
+                    return;
+                }
+                let _ = ev.send(NetEvent::Disconnected);
+            }
+            Err(e) => {
+                tracing::debug!(error = %e, addr = %cfg.addr, "connect failed");
+                set_status(&status, |s| s.last_error = Some(e));
+            }
+        }
+        let sleep = tokio::time::sleep(jittered(backoff));
+        backoff = (backoff * 2).min(cfg.backoff_max);
+        tokio::pin!(sleep);
+        loop {
+            tokio::select! {
+                _ = &mut sleep => break,
+                c = cmd_rx.recv() => match c {
+                    None | Some(Cmd::Close) => return,
+                    Some(Cmd::Request { id, .. }) => {
+                        let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
+                    }
+                    Some(Cmd::Cancel { .. }) => {}
+                },
+            }
+        }
+    }
+}
+
+/// Serves requests on one connection; returns true if the user closed the
+/// session, false if the connection was lost.
+async fn serve_session(
+    conn: &Connection,
+    cmd_rx: &mut mpsc::UnboundedReceiver<Cmd>,
+    ev: &crossbeam_channel::Sender<NetEvent>,
+) -> bool {
+    let mut tasks: JoinSet<(u64, Result<Vec<u8>, NetError>)> = JoinSet::new();
+    let mut pending: HashMap<u64, tokio::task::AbortHandle> = HashMap::new();
+    let user_closed = loop {
+        tokio::select! {
+            c = cmd_rx.recv() => match c {
+                None | Some(Cmd::Close) => break true,
+                Some(Cmd::Request { id, offset, size }) => {
+                    if pending.contains_key(&id) {
+                        let _ = ev.send(NetEvent::Failed {
+                            id,
+                            error: NetError::Server(ErrorMsg::new(
+                                ErrorCode::DuplicateRequest,
+                                "request id already in flight (client side)",
+                            )),
+                        });
+                        continue;
+                    }
+                    let c = conn.clone();
+                    let h = tasks.spawn(async move { (id, c.fetch(id, offset, size).await) });
+                    pending.insert(id, h);
+                }
+                Some(Cmd::Cancel { id }) => {
+                    if let Some(h) = pending.remove(&id) {
+                        h.abort();
+                        let _ = ev.send(NetEvent::Cancelled { id });
+                    }
+                }
+            },
+            Some(done) = tasks.join_next(), if !tasks.is_empty() => {
+                if let Ok((id, result)) = done {
+                    if pending.remove(&id).is_some() {
+                        let _ = ev.send(match result {
+                            Ok(bytes) => NetEvent::Record { id, bytes },
+                            Err(error) => NetEvent::Failed { id, error },
+                        });
+                    }
+                }
+            }
+            reason = conn.closed() => {
+                tracing::info!(error = %reason, "connection lost");
+                for (id, h) in pending.drain() {
+                    h.abort();
+                    let _ = ev.send(NetEvent::Failed { id, error: reason.clone() });
+                }
+                break false;
+            }
+        }
+    };
+    if user_closed {
+        for (id, h) in pending.drain() {
+            h.abort();
+            let _ = ev.send(NetEvent::Cancelled { id });
+        }
+    }
+    tasks.shutdown().await;
+    user_closed
+}

@@ -1,0 +1,347 @@
+//! Fixed-size priority request queues with per-frame resubmission.
+//!
+//! Implements thesis §3.5.2 (thesis-notes §4): every frame the selection
+//! rebuilds the list of triggered requests; the highest-importance ones fill
+//! the free slots of a fixed-size queue of requests in flight; the others are
+//! discarded and will be triggered again, with fresh importance, next frame.
+//!
+//! Beyond the thesis ([VAGUE] there, thesis-notes §4 "Cancellation"):
+//! - a request already in flight is never sent twice (keyed by tree+block);
+//! - an in-flight request is **cancelled** when its block is gone or no
+//!   longer needs that LOD ([`RequestQueue::retain_relevant`]), when it has
+//!   not been triggered for [`QueueConfig::cancel_after_frames`] frames
+//!   (became invisible, or its LOD is no longer selected), or when the queue
+//!   is full and a waiting request is more important than the worst in-flight
+//!   one by [`QueueConfig::preempt_margin`];
+//! - responses to unknown (cancelled) ids are recognised by
+//!   [`RequestQueue::take`] returning `None`, and dropped by the caller.
+//!
+//! The split/merge queue ([`select_tree_ops`]) is larger and has no network:
+//! the most important triggered operations, up to a capacity per frame, are
+//! executed at the start of the next frame.
+
+use planet_core::format::{ChildRef, Tree};
+use planet_core::BlockId;
+use std::collections::HashMap;
+
+/// A triggered load (refine) request.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoadRequest {
+    /// The tree.
+    pub tree: Tree,
+    /// The block whose LOD 0 is wanted.
+    pub block: BlockId,
+    /// Where the record is.
+    pub record: ChildRef,
+    /// Request importance (higher is more urgent).
+    pub importance: f64,
+    /// Forced by a neighbour's split (§4.3.3): visibility was ignored.
+    pub forced: bool,
+}
+
+/// Queue parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QueueConfig {
+    /// Requests in flight at most (thesis: "fixed and relatively small").
+    pub max_in_flight: usize,
+    /// Cancel an in-flight request after this many frames without trigger.
+    pub cancel_after_frames: u32,
+    /// Pre-empt the worst in-flight request when a waiting one beats it by
+    /// this much importance (`f64::INFINITY` disables pre-emption).
+    pub preempt_margin: f64,
+    /// Cancel a request still unanswered after this many frames (a lost
+    /// response must not hold a slot forever).
+    pub timeout_frames: u32,
+}
+
+impl Default for QueueConfig {
+    fn default() -> Self {
+        QueueConfig {
+            max_in_flight: 16,
+            cancel_after_frames: 2,
+            preempt_margin: 2.0,
+            timeout_frames: 600,
+        }
+    }
+}
+
+/// An in-flight request.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InFlight {
+    /// The request, with its latest importance.
+    pub request: LoadRequest,
+    /// Consecutive frames it was not triggered.
+    pub missed: u32,
+    /// Frames since it was sent.
+    pub age: u32,
+}
+
+/// What one frame's selection decided.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Selected {
+    /// New requests to send, most important first.
+    pub send: Vec<(u64, LoadRequest)>,
+    /// In-flight requests to cancel.
+    pub cancel: Vec<u64>,
+}
+
+/// The fixed-size queue of load requests in flight.
+#[derive(Debug, Clone)]
+pub struct RequestQueue {
+    config: QueueConfig,
+    next_id: u64,
+    in_flight: HashMap<u64, InFlight>,
+    by_block: HashMap<(Tree, BlockId), u64>,
+}
+
+impl RequestQueue {
+    /// An empty queue.
+    pub fn new(config: QueueConfig) -> RequestQueue {
+        RequestQueue {
+            config,
+            next_id: 1,
+            in_flight: HashMap::new(),
+            by_block: HashMap::new(),
+        }
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &QueueConfig {
+        &self.config
+    }
+
+    /// Number of requests in flight.
+    pub fn in_flight(&self) -> usize {
+        self.in_flight.len()
+    }
+
+    /// The in-flight request `id`.
+    pub fn get(&self, id: u64) -> Option<&InFlight> {
+        self.in_flight.get(&id)
+    }
+
+    /// Whether a request for this block is in flight.
+    pub fn is_in_flight(&self, tree: Tree, block: &BlockId) -> bool {
+        self.by_block.contains_key(&(tree, *block))
+    }
+
+    /// Remove the in-flight request `id` (its response arrived or failed).
+    /// `None` for an unknown or cancelled id: drop the response.
+    pub fn take(&mut self, id: u64) -> Option<LoadRequest> {
+        let f = self.in_flight.remove(&id)?;
+        self.by_block.remove(&(f.request.tree, f.request.block));
+        Some(f.request)
+    }
+
+    /// Cancel every in-flight request for which `relevant` is false.
+    pub fn retain_relevant(
+        &mut self,
+        mut relevant: impl FnMut(Tree, &BlockId) -> bool,
+    ) -> Vec<u64> {
+        let gone: Vec<u64> = self
+            .in_flight
+            .iter()
+            .filter(|(_, f)| !relevant(f.request.tree, &f.request.block))
+            .map(|(id, _)| *id)
+            .collect();
+        for id in &gone {
+            self.take(*id);
+        }
+        gone
+    }
+
+    /// One frame's selection from this frame's triggered requests.
+    pub fn select(&mut self, triggered: Vec<LoadRequest>) -> Selected {
+        let mut best: HashMap<(Tree, BlockId), LoadRequest> = HashMap::new();
+        for r in triggered {
+            if !r.importance.is_finite() {
+                continue;
+            }
+            let e = best.entry((r.tree, r.block)).or_insert(r);
+            if r.importance > e.importance {
+                *e = r;
+            }
+        }
+        let mut out = Selected::default();
+        // Refresh or age in-flight requests.
+        let mut stale = vec![];
+        for (id, f) in self.in_flight.iter_mut() {
+            f.age = f.age.saturating_add(1);
+            if f.age > self.config.timeout_frames {
+                stale.push(*id);
+                continue;
+            }
+            match best.remove(&(f.request.tree, f.request.block)) {
+                Some(r) => {
+                    f.request.importance = r.importance;
+                    f.missed = 0;
+                }
+                None => {
+                    f.missed += 1;
+                    if f.missed >= self.config.cancel_after_frames.max(1) {
+                        stale.push(*id);
+                    }
+                }
+            }
+        }
+        stale.sort_unstable();
+        for id in stale {
+            self.take(id);
+            out.cancel.push(id);
+        }
+        let mut waiting: Vec<LoadRequest> = best.into_values().collect();
+        waiting.sort_by(|a, b| {
+            b.importance
+                .total_cmp(&a.importance)
+                .then(a.block.cmp(&b.block))
+        });
+        let mut waiting = waiting.into_iter().peekable();
+        while self.in_flight.len() < self.config.max_in_flight {
+            let Some(r) = waiting.next() else { break };
+            out.send.push((self.push(r), r));
+        }
+        // Pre-emption of the least important in-flight request.
+        for _ in 0..self.config.max_in_flight {
+            let Some(next) = waiting.peek() else { break };
+            let worst = self
+                .in_flight
+                .iter()
+                .min_by(|a, b| a.1.request.importance.total_cmp(&b.1.request.importance))
+                .map(|(id, f)| (*id, f.request.importance));
+            match worst {
+                Some((id, imp)) if imp + self.config.preempt_margin < next.importance => {
+                    self.take(id);
+                    out.cancel.push(id);
+                    if let Some(r) = waiting.next() {
+                        out.send.push((self.push(r), r));
+                    }
+                }
+                _ => break,
+            }
+        }
+        out
+    }
+
+    fn push(&mut self, r: LoadRequest) -> u64 {
+        let id = self.next_id;
+        self.next_id += 1;
+        self.in_flight.insert(
+            id,
+            InFlight {
+                request: r,
+                missed: 0,
+                age: 0,
+            },
+        );
+        self.by_block.insert((r.tree, r.block), id);
+        id
+    }
+}
+
+/// A split or merge.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum OpKind {
+    /// Split a fully loaded leaf.
+    Split,
+    /// Merge a block's leaf children back.
+    Merge,
+}
+
+/// A triggered tree operation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TreeOp {
+    /// Split or merge.
+    pub kind: OpKind,
+    /// The tree.
+    pub tree: Tree,
+    /// The block split, or the parent merged.
+    pub block: BlockId,
+    /// Request importance.
+    pub importance: f64,
+}
+
+/// The split/merge queue: the `capacity` most important distinct triggered
+/// operations (a block gets at most one), most important first.
+pub fn select_tree_ops(triggered: Vec<TreeOp>, capacity: usize) -> Vec<TreeOp> {
+    let mut best: HashMap<(Tree, BlockId), TreeOp> = HashMap::new();
+    for op in triggered {
+        if !op.importance.is_finite() {
+            continue;
+        }
+        let e = best.entry((op.tree, op.block)).or_insert(op);
+        if op.importance > e.importance {
+            *e = op;
+        }
+    }
+    let mut v: Vec<TreeOp> = best.into_values().collect();
+    v.sort_by(|a, b| {
+        b.importance
+            .total_cmp(&a.importance)
+            .then(a.block.cmp(&b.block))
+    });
+    v.truncate(capacity);
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use planet_core::Face;
+
+    fn req(x: u32, imp: f64) -> LoadRequest {
+        LoadRequest {
+            tree: Tree::Elevation,
+            block: BlockId::new(Face::NORTH, 5, x, 0).unwrap(),
+            record: ChildRef::default(),
+            importance: imp,
+            forced: false,
+        }
+    }
+
+    #[test]
+    fn fills_dedups_and_cancels() {
+        let mut q = RequestQueue::new(QueueConfig {
+            max_in_flight: 2,
+            cancel_after_frames: 1,
+            preempt_margin: 2.0,
+            timeout_frames: 100,
+        });
+        let s = q.select(vec![req(0, 1.0), req(1, 3.0), req(2, 2.0), req(1, 0.5)]);
+        assert_eq!(
+            s.send.iter().map(|s| s.1.block.x).collect::<Vec<_>>(),
+            vec![1, 2]
+        );
+        assert!(s.cancel.is_empty());
+        // Same triggers: nothing new, no duplicates.
+        let s = q.select(vec![req(0, 1.0), req(1, 3.0), req(2, 2.0)]);
+        assert!(s.send.is_empty() && s.cancel.is_empty());
+        // Block 2 no longer triggered: cancelled, block 0 takes its slot.
+        let s2 = q.select(vec![req(0, 1.0), req(1, 3.0)]);
+        assert_eq!(s2.cancel.len(), 1);
+        assert_eq!(s2.send.len(), 1);
+        assert_eq!(s2.send[0].1.block.x, 0);
+        // A much more important request pre-empts the worst.
+        let s3 = q.select(vec![req(0, 1.0), req(1, 3.0), req(9, 10.0)]);
+        assert_eq!(s3.cancel, vec![s2.send[0].0]);
+        assert_eq!(s3.send[0].1.block.x, 9);
+        assert_eq!(q.in_flight(), 2);
+        // Responses: known once, then unknown.
+        let id = s3.send[0].0;
+        assert!(q.take(id).is_some());
+        assert!(q.take(id).is_none());
+    }
+
+    #[test]
+    fn tree_ops_keep_best() {
+        let b = BlockId::root(Face::NORTH);
+        let op = |imp| TreeOp {
+            kind: OpKind::Split,
+            tree: Tree::Elevation,
+            block: b,
+            importance: imp,
+        };
+        let v = select_tree_ops(vec![op(1.0), op(3.0), op(f64::NAN)], 8);
+        assert_eq!(v.len(), 1);
+        assert_eq!(v[0].importance, 3.0);
+    }
+}

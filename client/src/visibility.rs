@@ -1,0 +1,567 @@
+//! Visibility: view frustum, horizon-fitted near/far planes and horizon
+//! occlusion of blocks.
+//!
+//! Implements thesis §3.6.1 / §4.2.1 (frustum against 3D bounding boxes) and
+//! §4.5.4 Eq. 4.3 (thesis-notes §9.6, seed 000 Eq. 1–2): the far plane is
+//! fitted to the horizon of the planet, so blocks behind the horizon fail the
+//! ordinary frustum test. Beyond the thesis:
+//!
+//! - **Numerical form.** `‖VO‖² − ‖OT‖²` is computed as
+//!   `(‖VO‖ − ‖OT‖)(‖VO‖ + ‖OT‖)` (no cancellation near the surface), and a
+//!   camera inside the min sphere (or at the planet centre) disables horizon
+//!   fitting instead of producing NaN.
+//! - **Erratum / gap in Eq. 4.3.** Eq. 4.3 gives the depth of the farthest
+//!   point of the *horizon ring* of the max sphere. When the point of the max
+//!   sphere farthest along the view direction is itself visible (looking away
+//!   from the planet from low altitude), that point is farther than the ring;
+//!   we take it when it is not occluded. The property test
+//!   `far_plane_never_culls_visible_points` checks the result against brute
+//!   force.
+//! - **Near plane [VAGUE in the thesis].** `near = (‖VO‖ − ‖OM‖)·cos θc`,
+//!   with `θc` the half-angle of the frustum's corner ray, so that a max-sphere
+//!   point seen at the screen corner is never in front of the near plane;
+//!   clamped to [`NEAR_MIN`].
+//! - **Horizon occlusion per block.** Independently of the far plane, a block
+//!   is hidden when all its bounding points lie in the *convex* part of the
+//!   min sphere's shadow: inside the tangent cone from the eye and beyond the
+//!   plane of the tangent circle. That set is convex, so if it holds every
+//!   bounding point it holds their hull, and so the block: the test never
+//!   culls a visible point.
+//! - **Curved blocks.** A block's bounding points are an `n × n` grid of
+//!   directions (cells of at most about 2.5°, `n ≥ 3`) at its minimum and
+//!   maximum elevation; the outer points are pushed out by `1/cos θ`, with
+//!   `θ` (plus 10 %) the largest angle from a grid cell's centre to its
+//!   corners, so the planes through them stay outside the curved surface.
+//!
+//! All tests run in eye-relative coordinates in `f64`.
+
+use glam::{DMat4, DVec3, DVec4};
+use planet_core::cube::FaceCoord;
+use planet_core::{BlockId, Datum};
+
+/// Smallest near-plane distance in metres.
+pub const NEAR_MIN: f64 = 0.5;
+
+/// A perspective camera in planet-centred metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// Eye position, planet-centred, metres.
+    pub eye: DVec3,
+    /// View direction (need not be normalised).
+    pub forward: DVec3,
+    /// Approximate up vector (re-orthogonalised against `forward`).
+    pub up: DVec3,
+    /// Vertical field of view in radians.
+    pub fov_y: f64,
+    /// Width / height.
+    pub aspect: f64,
+    /// Viewport height in pixels (for the screen-space error).
+    pub viewport_height_px: f64,
+}
+
+impl Camera {
+    /// A camera at `eye` looking at `target`, with `up` as the approximate up.
+    pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> Camera {
+        Camera {
+            eye,
+            forward: target - eye,
+            up,
+            fov_y: 60f64.to_radians(),
+            aspect: 16.0 / 9.0,
+            viewport_height_px: 1080.0,
+        }
+    }
+
+    /// Orthonormal (forward, right, up) basis; falls back to sane axes when
+    /// `forward` is degenerate or parallel to `up`.
+    pub fn basis(&self) -> (DVec3, DVec3, DVec3) {
+        let f = self.forward.try_normalize().unwrap_or(DVec3::NEG_Z);
+        let mut r = f.cross(self.up);
+        if r.length_squared() < 1e-20 || !r.is_finite() {
+            r = f.cross(DVec3::X);
+            if r.length_squared() < 1e-20 {
+                r = f.cross(DVec3::Y);
+            }
+        }
+        let r = r.normalize();
+        let u = r.cross(f);
+        (f, r, u)
+    }
+}
+
+/// Horizon-fitted near and far distances (thesis Eq. 4.3), for min and max
+/// planet radii `r_min` (‖OT‖) and `r_max` (‖OM‖).
+pub fn near_far(camera: &Camera, r_min: f64, r_max: f64) -> (f64, f64) {
+    let (f, _, _) = camera.basis();
+    let v = camera.eye;
+    let vo = v.length();
+    let r_max = r_max.max(r_min);
+    let tan_y = (camera.fov_y * 0.5).tan().abs();
+    let tan_c = tan_y * (1.0 + camera.aspect * camera.aspect).sqrt();
+    let cos_c = 1.0 / (1.0 + tan_c * tan_c).sqrt();
+    let near = ((vo - r_max) * cos_c).max(NEAR_MIN);
+    if vo.partial_cmp(&r_min) != Some(std::cmp::Ordering::Greater) || !vo.is_finite() {
+        // Inside the min sphere (or degenerate): no horizon, see everything.
+        let far = (vo + r_max).max(near * 2.0);
+        return (NEAR_MIN, if far.is_finite() { far } else { f64::MAX });
+    }
+    let vhat = v / vo;
+    let cos_a = f.dot(-vhat).clamp(-1.0, 1.0);
+    let sin_a = f.cross(vhat).length().min(1.0);
+    let vt = ((vo - r_min) * (vo + r_min)).sqrt();
+    let tm = ((r_max - r_min) * (r_max + r_min)).sqrt();
+    let ring = (vt + tm) * ((vt / vo) * cos_a + (r_min / vo) * sin_a);
+    let mut far = ring.max(vo - r_min);
+    // The max-sphere point farthest along `f`, when it is visible.
+    let p = f * r_max;
+    if !segment_hits_ball(v, p, r_min) {
+        far = far.max(f.dot(p - v));
+    }
+    let far = far * (1.0 + 1e-9) + 1.0;
+    (near.min(far * 0.5), far)
+}
+
+/// Whether the segment `a → b` passes strictly inside the ball of radius `r`
+/// centred on the origin.
+pub fn segment_hits_ball(a: DVec3, b: DVec3, r: f64) -> bool {
+    let d = b - a;
+    let dd = d.length_squared();
+    let t = if dd > 0.0 {
+        (-a.dot(d) / dd).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (a + d * t).length() < r
+}
+
+/// Conservative bounds of a block: bounding points, axis-aligned box, centre
+/// and footprint radius (thesis §4.2.4 `blockRadius`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BlockBounds {
+    /// Points whose convex hull contains the block's surface.
+    pub points: Vec<DVec3>,
+    /// Minimum corner of the axis-aligned box of `points`.
+    pub min: DVec3,
+    /// Maximum corner of the axis-aligned box of `points`.
+    pub max: DVec3,
+    /// Centre of the box.
+    pub centre: DVec3,
+    /// Footprint radius: the largest distance from the block's centre surface
+    /// point to its corner surface points (at height 0).
+    pub radius: f64,
+    /// Radius of a sphere about `centre` holding every bounding point.
+    pub sphere_radius: f64,
+    /// For blocks coarser than [`PART_LEVEL`]: the bounds of their
+    /// descendants at that level (same elevation range). The block is visible
+    /// only if one part is, which removes the false positives of one loose
+    /// hull spanning both the space behind the eye and behind the horizon.
+    pub parts: Vec<BlockBounds>,
+}
+
+/// Level of the parts that coarse blocks are tested by.
+pub const PART_LEVEL: u8 = 4;
+
+impl BlockBounds {
+    /// Bounds of `id` with elevations in `[h_min, h_max]` metres, with
+    /// parts at level [`PART_LEVEL`] when the block is coarser.
+    pub fn new(datum: &Datum, id: BlockId, h_min: f64, h_max: f64) -> BlockBounds {
+        let mut b = BlockBounds::single(datum, id, h_min, h_max);
+        if id.level < PART_LEVEL {
+            let mut ids = vec![id];
+            while ids[0].level < PART_LEVEL {
+                ids = ids.iter().flat_map(|i| i.children()).collect();
+            }
+            b.parts = ids
+                .into_iter()
+                .map(|i| BlockBounds::single(datum, i, h_min, h_max))
+                .collect();
+        }
+        b
+    }
+
+    /// Bounds of `id` alone (no parts).
+    pub fn single(datum: &Datum, id: BlockId, h_min: f64, h_max: f64) -> BlockBounds {
+        let (h_min, h_max) = if h_min <= h_max {
+            (h_min, h_max)
+        } else {
+            (h_max, h_min)
+        };
+        // Grid cells of at most ~2.5° keep the outward push under 5e-4 of
+        // the radius (about 3 km on the Earth), so coarse blocks near the
+        // horizon are not kept visible by a loose bound.
+        let cells = (90.0 / 2.5 / f64::powi(2.0, id.level as i32)).ceil() as usize;
+        let n = (cells + 1).clamp(3, 64);
+        let (s0, t0, s1, t1) = id.extent();
+        let dir = |a: f64, b: f64| {
+            let fc = FaceCoord {
+                face: id.face,
+                s: s0 + (s1 - s0) * a,
+                t: t0 + (t1 - t0) * b,
+            };
+            DVec3::from_array(fc.direction())
+        };
+        let step = 1.0 / (n - 1) as f64;
+        let mut theta: f64 = 0.0;
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let (a, b) = (i as f64 * step, j as f64 * step);
+                let c = dir(a + step / 2.0, b + step / 2.0);
+                for (da, db) in [(0.0, 0.0), (step, 0.0), (0.0, step), (step, step)] {
+                    let k = dir(a + da, b + db);
+                    theta = theta.max(angle(c, k));
+                }
+            }
+        }
+        let push = 1.0 / (theta * 1.1).min(1.4).cos() * (1.0 + 1e-9);
+        let mut points = Vec::with_capacity(2 * n * n);
+        for j in 0..n {
+            for i in 0..n {
+                let d = dir(i as f64 * step, j as f64 * step).to_array();
+                points.push(DVec3::from_array(datum.position(d, h_min)));
+                points.push(DVec3::from_array(datum.position(d, h_max)) * push);
+            }
+        }
+        let (mut min, mut max) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for p in &points {
+            min = min.min(*p);
+            max = max.max(*p);
+        }
+        let centre = (min + max) * 0.5;
+        let mid = DVec3::from_array(datum.position(dir(0.5, 0.5).to_array(), 0.0));
+        let radius = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)]
+            .iter()
+            .map(|&(a, b)| {
+                (DVec3::from_array(datum.position(dir(a, b).to_array(), 0.0)) - mid).length()
+            })
+            .fold(0.0, f64::max);
+        let sphere_radius = points
+            .iter()
+            .map(|p| (*p - centre).length())
+            .fold(0.0, f64::max)
+            * (1.0 + 1e-12);
+        BlockBounds {
+            points,
+            min,
+            max,
+            centre,
+            radius,
+            sphere_radius,
+            parts: Vec::new(),
+        }
+    }
+}
+
+fn angle(a: DVec3, b: DVec3) -> f64 {
+    2.0 * ((a - b).length() / 2.0).min(1.0).asin()
+}
+
+/// A plane `n·p + d ≥ 0` (inside), in eye-relative coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Plane {
+    n: DVec3,
+    d: f64,
+}
+
+/// The per-frame view: frustum (eye-relative), near/far and horizon.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    /// The camera.
+    pub camera: Camera,
+    /// Near distance (metres along the view direction).
+    pub near: f64,
+    /// Horizon-fitted far distance.
+    pub far: f64,
+    /// Radius of the occluding min sphere.
+    pub r_min: f64,
+    planes: [Plane; 6],
+    forward: DVec3,
+    eye_len: f64,
+    cos_beta: f64,
+    cone_half_angle: f64,
+    planet_in_view: bool,
+}
+
+/// Whether the cone (apex, unit axis, half-angle) meets the sphere.
+fn cone_meets_sphere(apex: DVec3, axis: DVec3, half: f64, centre: DVec3, radius: f64) -> bool {
+    let d = centre - apex;
+    let dist = d.length();
+    if dist.partial_cmp(&radius) != Some(std::cmp::Ordering::Greater) {
+        return true;
+    }
+    let spread = (radius / dist).min(1.0).asin();
+    let cos_angle = (d.dot(axis) / dist).clamp(-1.0, 1.0);
+    cos_angle.acos() <= half + spread + 1e-9
+}
+
+impl View {
+    /// Build the view for `camera` over a planet whose surface lies between
+    /// radii `r_min` and `r_max`.
+    pub fn new(camera: &Camera, r_min: f64, r_max: f64) -> View {
+        let (near, far) = near_far(camera, r_min, r_max);
+        let (f, r, u) = camera.basis();
+        let ty = (camera.fov_y * 0.5).tan().abs();
+        let tx = ty * camera.aspect.abs();
+        let planes = [
+            Plane {
+                n: r + f * tx,
+                d: 0.0,
+            },
+            Plane {
+                n: -r + f * tx,
+                d: 0.0,
+            },
+            Plane {
+                n: u + f * ty,
+                d: 0.0,
+            },
+            Plane {
+                n: -u + f * ty,
+                d: 0.0,
+            },
+            Plane { n: f, d: -near },
+            Plane { n: -f, d: far },
+        ];
+        let eye_len = camera.eye.length();
+        let cos_beta = if eye_len > r_min {
+            ((eye_len - r_min) * (eye_len + r_min)).sqrt() / eye_len
+        } else {
+            1.0
+        };
+        let cone_half_angle = (tx.hypot(ty)).atan();
+        let planet_in_view = cone_meets_sphere(
+            camera.eye,
+            f,
+            cone_half_angle,
+            DVec3::ZERO,
+            r_max.max(r_min),
+        );
+        View {
+            cone_half_angle,
+            planet_in_view,
+            camera: *camera,
+            near,
+            far,
+            r_min,
+            planes,
+            forward: f,
+            eye_len,
+            cos_beta,
+        }
+    }
+
+    /// The eye-relative view-projection (depth 0..1, right-handed) matching
+    /// the frustum, for a renderer that draws in eye-relative coordinates.
+    pub fn view_projection(&self) -> DMat4 {
+        let (f, r, u) = self.camera.basis();
+        let view = DMat4::from_cols(
+            DVec4::new(r.x, u.x, -f.x, 0.0),
+            DVec4::new(r.y, u.y, -f.y, 0.0),
+            DVec4::new(r.z, u.z, -f.z, 0.0),
+            DVec4::W,
+        );
+        let g = 1.0 / (self.camera.fov_y * 0.5).tan();
+        let (n, fa) = (self.near, self.far);
+        let proj = DMat4::from_cols(
+            DVec4::new(g / self.camera.aspect, 0.0, 0.0, 0.0),
+            DVec4::new(0.0, g, 0.0, 0.0),
+            DVec4::new(0.0, 0.0, fa / (n - fa), -1.0),
+            DVec4::new(0.0, 0.0, n * fa / (n - fa), 0.0),
+        );
+        proj * view
+    }
+
+    /// Whether the box (planet-centred) is at least partly inside the frustum.
+    pub fn box_in_frustum(&self, min: DVec3, max: DVec3) -> bool {
+        let (lo, hi) = (min - self.camera.eye, max - self.camera.eye);
+        self.planes.iter().all(|p| {
+            let v = DVec3::new(
+                if p.n.x >= 0.0 { hi.x } else { lo.x },
+                if p.n.y >= 0.0 { hi.y } else { lo.y },
+                if p.n.z >= 0.0 { hi.z } else { lo.z },
+            );
+            p.n.dot(v) + p.d >= 0.0
+        })
+    }
+
+    /// Whether the planet-centred point `p` is in the convex part of the min
+    /// sphere's shadow (so certainly hidden).
+    pub fn point_behind_horizon(&self, p: DVec3) -> bool {
+        if self.eye_len.partial_cmp(&self.r_min) != Some(std::cmp::Ordering::Greater) {
+            return false;
+        }
+        let v = self.camera.eye;
+        let vhat = v / self.eye_len;
+        // Beyond the plane of the tangent circle: p·V̂ < r²/|V|.
+        let beyond = p.dot(vhat) < self.r_min * (self.r_min / self.eye_len) * (1.0 - 1e-12);
+        if !beyond {
+            return false;
+        }
+        let d = p - v;
+        let along = d.dot(-vhat);
+        along > 0.0 && along > d.length() * self.cos_beta * (1.0 + 1e-12)
+    }
+
+    /// Whether every bounding point of the block is behind the horizon.
+    pub fn behind_horizon(&self, b: &BlockBounds) -> bool {
+        !b.points.is_empty() && b.points.iter().all(|p| self.point_behind_horizon(*p))
+    }
+
+    /// Whether the block may be visible (frustum with horizon-fitted planes,
+    /// and horizon occlusion).
+    pub fn is_visible(&self, b: &BlockBounds) -> bool {
+        if !b.parts.is_empty() {
+            return self.planet_in_view
+                && self.sphere_in_cone(b.centre, b.sphere_radius)
+                && b.parts.iter().any(|p| self.is_visible(p));
+        }
+        self.planet_in_view
+            && self.sphere_in_cone(b.centre, b.sphere_radius)
+            && self.box_in_frustum(b.min, b.max)
+            && self.hull_in_frustum(&b.points)
+            && !self.behind_horizon(b)
+    }
+
+    /// Whether the sphere may meet the frustum's bounding cone (apex at the
+    /// eye, axis forward, half-angle of the frustum's corner ray).
+    pub fn sphere_in_cone(&self, centre: DVec3, radius: f64) -> bool {
+        cone_meets_sphere(
+            self.camera.eye,
+            self.forward,
+            self.cone_half_angle,
+            centre,
+            radius,
+        )
+    }
+
+    /// Whether the convex hull of the planet-centred `points` may meet the
+    /// frustum: false when all of them are outside one plane.
+    pub fn hull_in_frustum(&self, points: &[DVec3]) -> bool {
+        let eye = self.camera.eye;
+        self.planes
+            .iter()
+            .all(|p| points.iter().any(|q| p.n.dot(*q - eye) + p.d >= 0.0))
+    }
+
+    /// Depth of a point along the view direction.
+    pub fn depth(&self, p: DVec3) -> f64 {
+        self.forward.dot(p - self.camera.eye)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use planet_core::Face;
+    use proptest::prelude::*;
+
+    const R: f64 = 6_371_000.0;
+
+    fn unit(a: f64, b: f64) -> DVec3 {
+        let (sa, ca) = a.sin_cos();
+        let (sb, cb) = b.sin_cos();
+        DVec3::new(ca * cb, ca * sb, sa)
+    }
+
+    proptest! {
+        /// Brute force: any point on (or inside the shell up to) the max
+        /// sphere that the min ball does not hide and that is in front of the
+        /// eye has a depth no greater than the far plane.
+        #[test]
+        fn far_plane_never_culls_visible_points(
+            alt in prop_oneof![-2.0e6f64..0.0, 0.0f64..1.0e4, 1.0e4f64..1.0e8],
+            ea in -1.5f64..1.5, eb in -3.2f64..3.2,
+            fa in -1.5f64..1.5, fb in -3.2f64..3.2,
+            pts in proptest::collection::vec((-1.5f64..1.5, -3.2f64..3.2, 0.0f64..1.0), 64),
+            relief in 0.0f64..20_000.0,
+        ) {
+            let r_min = R - relief;
+            let r_max = R + relief;
+            let eye = unit(ea, eb) * (R + alt);
+            let mut cam = Camera::look_at(eye, eye + unit(fa, fb), DVec3::Z);
+            cam.fov_y = 1.0;
+            let (near, far) = near_far(&cam, r_min, r_max);
+            prop_assert!(near.is_finite() && far.is_finite() && near > 0.0 && far > near);
+            let (f, _, _) = cam.basis();
+            for (a, b, h) in pts {
+                let p = unit(a, b) * (r_min + (r_max - r_min) * h.sqrt());
+                if segment_hits_ball(eye, p, r_min) { continue; }
+                let depth = f.dot(p - eye);
+                prop_assert!(depth <= far, "depth {depth} far {far}");
+            }
+            // The ring's farthest point and points toward the horizon.
+            for k in 0..64 {
+                let p = unit(fa + (k as f64 - 32.0) * 0.02, fb) * r_max;
+                if segment_hits_ball(eye, p, r_min) { continue; }
+                prop_assert!(f.dot(p - eye) <= far);
+            }
+        }
+
+        /// The horizon test never hides a point that brute force sees.
+        #[test]
+        fn horizon_test_is_conservative(
+            alt in 0.0f64..1.0e7, ea in -1.5f64..1.5, eb in -3.2f64..3.2,
+            pts in proptest::collection::vec((-1.5f64..1.5, -3.2f64..3.2, 0.0f64..1.0), 64),
+        ) {
+            let r_min = R - 1000.0;
+            let eye = unit(ea, eb) * (R + alt);
+            let view = View::new(&Camera::look_at(eye, DVec3::ZERO, DVec3::Z), r_min, R + 9000.0);
+            for (a, b, h) in pts {
+                let p = unit(a, b) * (r_min + 10_000.0 * h);
+                if view.point_behind_horizon(p) {
+                    prop_assert!(segment_hits_ball(eye, p, r_min));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn bounds_contain_surface() {
+        let datum = Datum::WGS84;
+        for level in 0..4u8 {
+            let id = BlockId::new(Face::new(1).unwrap(), level, 0, 0).unwrap();
+            let b = BlockBounds::new(&datum, id, -100.0, 100.0);
+            let (s0, t0, s1, t1) = id.extent();
+            for j in 0..=20 {
+                for i in 0..=20 {
+                    let fc = FaceCoord {
+                        face: id.face,
+                        s: s0 + (s1 - s0) * i as f64 / 20.0,
+                        t: t0 + (t1 - t0) * j as f64 / 20.0,
+                    };
+                    for h in [-100.0, 0.0, 100.0] {
+                        let p = DVec3::from_array(datum.position(fc.direction(), h));
+                        assert!(p.cmpge(b.min).all() && p.cmple(b.max).all(), "{level}");
+                    }
+                }
+            }
+            assert!(b.radius > 0.0);
+        }
+    }
+
+    #[test]
+    fn view_projection_matches_planes() {
+        let eye = DVec3::new(R + 1000.0, 0.0, 0.0);
+        let cam = Camera::look_at(eye, eye + DVec3::Y, DVec3::X);
+        let v = View::new(&cam, R - 100.0, R + 100.0);
+        let m = v.view_projection();
+        let (f, _, _) = cam.basis();
+        let clip = |d: f64| {
+            let c = m * (f * d).extend(1.0);
+            c.z / c.w
+        };
+        assert!(clip(v.near).abs() < 1e-9);
+        assert!((clip(v.far) - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn degenerate_cameras_are_finite() {
+        for eye in [DVec3::ZERO, DVec3::X * 1e12, DVec3::X * (R - 10.0)] {
+            let cam = Camera::look_at(eye, DVec3::X, DVec3::Z);
+            let (n, f) = near_far(&cam, R - 100.0, R + 100.0);
+            assert!(
+                n.is_finite() && f.is_finite() && n > 0.0 && f > n,
+                "{eye} {n} {f}"
+            );
+        }
+    }
+}

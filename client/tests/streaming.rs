@@ -1,0 +1,471 @@
+//! End-to-end tests of the client against the synthetic database and the
+//! fake server (no network).
+
+use glam::DVec3;
+use planet_client::importance::{block_distance, importance, selected_lod, wants_split};
+use planet_client::quality::{QualityConfig, QualityMode};
+use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
+use planet_client::tree::Samples;
+use planet_client::visibility::segment_hits_ball;
+use planet_client::{Camera, Client, ClientConfig, FrameOutput, TransportError};
+use planet_core::cube::FaceCoord;
+use planet_core::format::Tree;
+use planet_core::lod::is_first_lod;
+use planet_core::BlockId;
+use proptest::prelude::*;
+use std::sync::OnceLock;
+
+fn db() -> &'static TestDb {
+    static DB: OnceLock<TestDb> = OnceLock::new();
+    DB.get_or_init(|| TestDb::build(TestDbConfig::default()))
+}
+
+fn client(threads: usize) -> Client {
+    let cfg = ClientConfig {
+        decode_threads: threads,
+        quality: QualityConfig {
+            mode: QualityMode::Fixed,
+            initial: 1e4,
+            ..QualityConfig::default()
+        },
+        ..ClientConfig::default()
+    };
+    Client::new(db().header.clone(), cfg).expect("client")
+}
+
+fn step(c: &mut Client, s: &mut FakeServer, cam: &Camera) -> FrameOutput {
+    let out = c.frame(cam, 1.0 / 60.0);
+    s.submit(&out);
+    for (id, bytes) in s.tick(db()) {
+        c.deliver(id, Ok(bytes));
+    }
+    c.wait_for_decodes();
+    out
+}
+
+/// Run until nothing is sent, in flight, decoding or pending for 3 frames.
+fn converge(c: &mut Client, s: &mut FakeServer, cam: &Camera, max: usize) -> FrameOutput {
+    let mut quiet = 0;
+    for _ in 0..max {
+        let out = step(c, s, cam);
+        c.tree().validate().expect("valid");
+        let idle = out.send.is_empty()
+            && c.queue().in_flight() == 0
+            && c.pending_ops().is_empty()
+            && c.decoding() == 0
+            && s.pending() == 0;
+        quiet = if idle { quiet + 1 } else { 0 };
+        if quiet >= 3 {
+            return out;
+        }
+        if std::env::var("DEBUG_CONVERGE").is_ok() {
+            eprintln!(
+                "{:?} send {:?} ops {:?} decoding {} pending {} err {:?}",
+                out.stats,
+                out.send,
+                c.pending_ops(),
+                c.decoding(),
+                s.pending(),
+                c.last_error()
+            );
+        }
+    }
+    panic!("did not converge in {max} frames");
+}
+
+fn surface(dir: DVec3, alt: f64) -> DVec3 {
+    dir.normalize() * (db().header.datum.equatorial_radius() + alt)
+}
+
+fn ground_camera() -> Camera {
+    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 150_000.0);
+    let target = surface(DVec3::new(1.0, 0.3, 0.25), 0.0);
+    Camera::look_at(eye, target, eye.normalize())
+}
+
+/// Independent check: some point of the block (dense grid at its min and max
+/// elevation) is in front of the eye and not hidden by a slightly smaller
+/// min sphere.
+fn maybe_visible(block: BlockId, cam: &Camera, r_min: f64) -> bool {
+    let r = db().refs[&(Tree::Elevation, block)];
+    let (s0, t0, s1, t1) = block.extent();
+    let f = cam.forward.normalize();
+    let n = 16;
+    for j in 0..=n {
+        for i in 0..=n {
+            let fc = FaceCoord {
+                face: block.face,
+                s: s0 + (s1 - s0) * i as f64 / n as f64,
+                t: t0 + (t1 - t0) * j as f64 / n as f64,
+            };
+            for h in [r.min_elevation as f64, r.max_elevation as f64] {
+                let p = DVec3::from_array(db().header.datum.position(fc.direction(), h));
+                let front = f.dot(p - cam.eye) > 0.0;
+                if front && !segment_hits_ball(cam.eye, p, r_min * 0.995) {
+                    return true;
+                }
+            }
+        }
+    }
+    false
+}
+
+fn check_exact(c: &Client, out: &FrameOutput) {
+    let et = c.tree().elevation();
+    let w = et.width;
+    for d in &out.draw {
+        let n = et.get(&d.block).expect("drawn node");
+        let Some(Samples::Elevation(g)) = &n.samples else {
+            panic!("no samples")
+        };
+        let truth = &db().elevation[&d.block];
+        for j in 0..=w {
+            for i in 0..=w {
+                if n.lod == 0 || is_first_lod(i, j) {
+                    assert_eq!(g[j * (w + 1) + i], truth[j * (w + 1) + i], "{:?}", d.block);
+                }
+            }
+        }
+    }
+    if let Some(ct) = c.tree().colour() {
+        for n in ct.nodes() {
+            if let Some(Samples::Colour { lod1, full }) = &n.samples {
+                let truth = &db().colour[&n.id];
+                assert_eq!(*lod1, planet_core::lod::colour_filter(truth, ct.width));
+                if let Some(f) = full {
+                    assert_eq!(f, truth);
+                }
+            }
+        }
+    }
+}
+
+fn static_camera_converges(threads: usize) {
+    let mut c = client(threads);
+    let mut s = FakeServer::new(2);
+    let cam = ground_camera();
+    let out = converge(&mut c, &mut s, &cam, 400);
+    check_exact(&c, &out);
+    let et = c.tree().elevation();
+    let deepest = out.draw.iter().map(|d| d.block.level).max().unwrap_or(0);
+    assert!(deepest >= 3, "deepest drawn level {deepest}");
+    for d in &out.draw {
+        let n = et.get(&d.block).expect("node");
+        let b = n.bounds.as_ref().expect("bounds");
+        let imp = importance(
+            block_distance(cam.eye, b.centre, b.radius),
+            b.radius,
+            et.width as f64,
+            c.quality_factor(),
+        );
+        // The LOD it needs is loaded...
+        assert!(n.lod <= selected_lod(imp), "{:?} needs LOD 0", d.block);
+        // ...and it does not need to split.
+        if wants_split(imp) {
+            assert!(
+                c.tree().can_split(Tree::Elevation, &d.block).is_err(),
+                "{:?}",
+                d.block
+            );
+        }
+        // Crack-fixing info: lodDiff consistent with the erratum formula.
+        for nb in d.neighbours.iter().flatten() {
+            let diff =
+                (nb.lod as i32 - d.lod as i32) + (d.block.level as i32 - nb.block.level as i32);
+            assert_eq!(nb.lod_diff, diff);
+        }
+        assert!(d.colour.is_some());
+    }
+    assert!(
+        out.stats.totals.relevant_ratio() > 0.5,
+        "{:?}",
+        out.stats.totals
+    );
+    assert!(out.stats.max_screen_error.is_finite());
+}
+
+#[test]
+fn static_camera_converges_inline() {
+    static_camera_converges(0);
+}
+
+#[test]
+fn static_camera_converges_threaded() {
+    static_camera_converges(2);
+}
+
+#[test]
+fn nothing_hidden_is_requested() {
+    let cams = [
+        ground_camera(),
+        {
+            // Low, looking along the horizon.
+            let eye = surface(DVec3::new(0.2, -1.0, 0.3), 3000.0);
+            let east = DVec3::Z.cross(eye).normalize();
+            Camera::look_at(eye, eye + east, eye.normalize())
+        },
+        {
+            // High above a pole, looking down.
+            let eye = DVec3::new(0.0, 0.0, 1.2e7);
+            Camera::look_at(eye, DVec3::ZERO, DVec3::X)
+        },
+        {
+            // Looking away from the planet.
+            let eye = surface(DVec3::new(-1.0, 0.2, -0.4), 20_000.0);
+            Camera::look_at(eye, eye * 2.0, DVec3::Z)
+        },
+    ];
+    for (ci, cam) in cams.into_iter().enumerate() {
+        let mut c = client(0);
+        let mut s = FakeServer::new(1);
+        let (r_min, _) = c.radii();
+        for _ in 0..120 {
+            step(&mut c, &mut s, &cam);
+        }
+        let mut forced = 0;
+        for o in &s.log {
+            if o.forced {
+                forced += 1;
+                continue;
+            }
+            assert!(
+                maybe_visible(o.block, &cam, r_min),
+                "{:?} requested but hidden (camera {ci})",
+                o.block
+            );
+        }
+        assert!(forced <= s.log.len());
+    }
+}
+
+#[test]
+fn irrelevant_requests_are_cancelled_and_late_responses_dropped() {
+    let mut c = client(0);
+    let mut s = FakeServer::new(1_000_000); // never answers by itself
+    let cam = ground_camera();
+    let mut sent = vec![];
+    // Load the roots' LOD 0 by hand so deeper requests follow.
+    let mut quick = FakeServer::new(0);
+    for _ in 0..40 {
+        let out = step(&mut c, &mut quick, &cam);
+        if out.stats.nodes > 30 {
+            break;
+        }
+    }
+    for _ in 0..20 {
+        let out = c.frame(&cam, 1.0 / 60.0);
+        s.submit(&out);
+        sent.extend(out.send.iter().copied());
+        if sent.len() >= 4 {
+            break;
+        }
+    }
+    assert!(!sent.is_empty());
+    // Turn to the other side of the planet: the in-flight requests are no
+    // longer triggered and get cancelled within the grace period.
+    let away = Camera::look_at(-cam.eye.normalize() * 1e9, -cam.eye * 6.0, DVec3::Z);
+    let mut cancelled = vec![];
+    for _ in 0..200 {
+        let out = c.frame(&away, 1.0 / 60.0);
+        cancelled.extend(out.cancel.iter().copied());
+        c.tree().validate().expect("valid");
+        if c.tree().node_count() == 12 && c.queue().in_flight() == 0 {
+            break;
+        }
+    }
+    assert!(
+        sent.iter().all(|o| cancelled.contains(&o.id)),
+        "all cancelled"
+    );
+    assert_eq!(c.tree().node_count(), 12, "merged back to the roots");
+    // Late responses (cancelled ids; blocks merged away) are dropped safely.
+    let before = c.totals();
+    let mut late_bytes = 0;
+    for o in &sent {
+        let bytes = db().read(&o.record).expect("record");
+        late_bytes += bytes.len() as u64;
+        c.deliver(o.id, Ok(bytes));
+    }
+    let out = c.frame(&away, 1.0 / 60.0);
+    c.tree().validate().expect("valid");
+    assert_eq!(out.stats.totals.refines_applied, before.refines_applied);
+    assert_eq!(
+        out.stats.totals.bytes_dropped - before.bytes_dropped,
+        late_bytes
+    );
+}
+
+#[test]
+fn duplicate_response_is_dropped() {
+    // A response whose id is still known but whose block has LOD 0 already or
+    // is gone: `deliver` drops it without decoding.
+    let mut c = client(0);
+    let mut s = FakeServer::new(0);
+    let cam = ground_camera();
+    let out = step(&mut c, &mut s, &cam);
+    assert!(!out.send.is_empty());
+    // Frame 2 sends more; answer one with the bytes, then again (duplicate).
+    let first = out.send[0];
+    let bytes = db().read(&first.record).expect("record");
+    let before = c.totals();
+    c.deliver(first.id, Ok(bytes.clone()));
+    let out = c.frame(&cam, 1.0 / 60.0);
+    assert_eq!(
+        out.stats.totals.bytes_dropped,
+        before.bytes_dropped + bytes.len() as u64
+    );
+    c.tree().validate().expect("valid");
+}
+
+#[test]
+fn corrupt_and_wrong_records_are_rejected_and_re_requested() {
+    let mut c = client(0);
+    let mut s = FakeServer::new(1);
+    let cam = ground_camera();
+    for r in &db().header.elevation.root_records {
+        s.corrupt_once.insert(r.offset);
+    }
+    // First frame: swap the answers of two requests (wrong block).
+    let out = c.frame(&cam, 1.0 / 60.0);
+    s.submit(&out);
+    assert!(out.send.len() >= 2);
+    let (a, b) = (out.send[0], out.send[1]);
+    c.deliver(a.id, Ok(db().read(&b.record).expect("b")));
+    c.deliver(b.id, Err(TransportError("reset".into())));
+    let out = c.frame(&cam, 1.0 / 60.0);
+    s.submit(&out);
+    assert_eq!(out.stats.records_rejected, 1);
+    assert!(c.last_error().is_some());
+    let out = converge(&mut c, &mut s, &cam, 400);
+    check_exact(&c, &out);
+    assert!(out.stats.totals.records_rejected >= 2);
+    for (f, r) in db().header.elevation.root_records.iter().enumerate() {
+        if s.corrupt_once.contains(&r.offset) {
+            continue; // never requested
+        }
+        let n = s.log.iter().filter(|o| o.record.offset == r.offset).count();
+        assert!(n >= 2, "corrupted root {f} requested again");
+        let root = c
+            .tree()
+            .elevation()
+            .get(&BlockId::root(planet_core::Face::ALL[f]))
+            .expect("root");
+        assert!(root.split || root.lod == 0, "root {f} loaded after retry");
+    }
+    assert!(
+        s.corrupt_once.len() < 6,
+        "some corrupt record was requested"
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 12, .. ProptestConfig::default() })]
+
+    /// Any sequence of camera moves keeps the tree valid, and flying away
+    /// returns it to the six roots of each tree (no leaks).
+    #[test]
+    fn camera_moves_keep_tree_valid(
+        moves in proptest::collection::vec(
+            ((-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 3.0f64..7.3, (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 1usize..6),
+            1..6),
+        latency in 0u64..3,
+    ) {
+        let mut c = client(0);
+        let mut s = FakeServer::new(latency);
+        for ((x, y, z), alt_log, (fx, fy, fz), frames) in moves {
+            let dir = DVec3::new(x, y, z);
+            let dir = if dir.length() < 1e-3 { DVec3::X } else { dir };
+            let eye = surface(dir, 10f64.powf(alt_log));
+            let f = DVec3::new(fx, fy, fz);
+            let f = if f.length() < 1e-3 { -eye } else { f };
+            let cam = Camera::look_at(eye, eye + f, eye.normalize());
+            for _ in 0..frames * 4 {
+                step(&mut c, &mut s, &cam);
+                if let Err(e) = c.tree().validate() {
+                    prop_assert!(false, "{e}");
+                }
+            }
+        }
+        let far = Camera::look_at(DVec3::new(1e9, 0.0, 0.0), DVec3::ZERO, DVec3::Z);
+        converge(&mut c, &mut s, &far, 400);
+        prop_assert_eq!(c.tree().node_count(), 12);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 16, .. ProptestConfig::default() })]
+
+    /// Random cameras: no request (other than forced neighbours) is for a
+    /// block entirely behind the camera or behind the horizon.
+    #[test]
+    fn random_cameras_request_nothing_hidden(
+        (x, y, z) in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+        alt_log in 2.5f64..7.5,
+        (fx, fy, fz) in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+    ) {
+        let dir = DVec3::new(x, y, z);
+        let dir = if dir.length() < 1e-3 { DVec3::X } else { dir };
+        let eye = surface(dir, 10f64.powf(alt_log));
+        let f = DVec3::new(fx, fy, fz);
+        let f = if f.length() < 1e-3 { -eye } else { f };
+        let cam = Camera::look_at(eye, eye + f, eye.normalize());
+        let mut c = client(0);
+        let mut s = FakeServer::new(1);
+        let (r_min, _) = c.radii();
+        for _ in 0..40 {
+            step(&mut c, &mut s, &cam);
+        }
+        for o in s.log.iter().filter(|o| !o.forced) {
+            prop_assert!(maybe_visible(o.block, &cam, r_min), "{:?} requested but hidden", o.block);
+        }
+    }
+}
+
+/// Block width 4 allows a level difference of 1 only (thesis §4.3.3): splits
+/// must force coarser neighbours, and the limit holds every frame.
+#[test]
+fn level_difference_limit_one_is_kept() {
+    let db4 = TestDb::build(TestDbConfig {
+        elevation_width: 4,
+        elevation_max_level: 5,
+        colour: Some((8, 3)),
+        ..TestDbConfig::default()
+    });
+    let cfg = ClientConfig {
+        decode_threads: 0,
+        quality: QualityConfig {
+            mode: QualityMode::Fixed,
+            initial: 1e4,
+            ..QualityConfig::default()
+        },
+        ..ClientConfig::default()
+    };
+    let mut c = Client::new(db4.header.clone(), cfg).expect("client");
+    assert_eq!(c.tree().max_level_difference(), 1);
+    let mut s = FakeServer::new(1);
+    let eye = DVec3::new(1.0, 0.02, 0.01).normalize() * (6_371_000.0 + 5_000.0);
+    let cam = Camera::look_at(
+        eye,
+        DVec3::new(1.0, 0.2, 0.02).normalize() * 6_371_000.0,
+        eye.normalize(),
+    );
+    let mut forced = 0;
+    for _ in 0..300 {
+        let out = c.frame(&cam, 1.0 / 60.0);
+        forced += out.send.iter().filter(|o| o.forced).count();
+        s.submit(&out);
+        for (id, bytes) in s.tick(&db4) {
+            c.deliver(id, Ok(bytes));
+        }
+        c.tree().validate().expect("valid");
+    }
+    let deepest = c
+        .tree()
+        .elevation()
+        .nodes()
+        .map(|n| n.id.level)
+        .max()
+        .unwrap_or(0);
+    assert!(deepest >= 4, "deepest {deepest}");
+    assert!(forced > 0, "no neighbour was forced");
+}
