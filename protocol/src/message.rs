@@ -67,7 +67,8 @@ pub struct Limits {
     pub max_in_flight: u32,
     /// Largest `size` a [`LodRequest`] may ask for.
     pub max_record_size: u32,
-    /// Bandwidth cap for this connection in bytes per second; 0 = unlimited.
+    /// The tenant's bandwidth cap in bytes per second, one token bucket shared
+    /// by all of the tenant's connections; 0 = unlimited.
     pub max_bytes_per_second: u64,
     /// The server closes the connection after this long without traffic.
     pub idle_timeout_ms: u32,
