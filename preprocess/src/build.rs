@@ -19,7 +19,8 @@
 //! `(offset, size)`. A parent is appended only after its children returned,
 //! so the file is post-order within every subtree. Memory: each in-flight
 //! block holds one grid plus its children's first LODs, so the total is
-//! bounded by threads × depth grids.
+//! bounded by threads × depth grids; [`BuildOptions::grid_memory`] caps the
+//! threads to keep that product under a bound.
 
 use crate::error::BuildError;
 use crate::plan::Plan;
@@ -64,6 +65,23 @@ pub struct BuildOptions {
     pub threads: Option<usize>,
     /// Hide progress bars.
     pub quiet: bool,
+    /// Bytes the in-flight grids may take (`None`: unbounded). The worker
+    /// count is capped so that threads × depth × [`GRID_BYTES_PER_LEVEL`]
+    /// stays within it (at least one worker).
+    pub grid_memory: Option<usize>,
+}
+
+/// Upper estimate of what one in-flight block holds while its subtree is
+/// built: its full elevation grid and scratch copy (2 × 65² × 2 B), its four
+/// children's first LODs (4 × (33² × 2 + 64² × 3) B), its full colour grid
+/// and first LOD (128² × 3 + 64² × 3 B), and the raw and lz4 payload buffers
+/// (≈ 2 × 45 kB), ≈ 225 kB, rounded up; doubled for rayon nesting a stolen
+/// subtree inside a waiting join.
+pub const GRID_BYTES_PER_LEVEL: usize = 2 * 256 * 1024;
+
+/// The worker count a grid-memory bound allows for a tree `depth` levels deep.
+pub fn threads_for_memory(grid_memory: usize, depth: usize) -> usize {
+    (grid_memory / (depth.max(1) * GRID_BYTES_PER_LEVEL)).max(1)
 }
 
 /// What a build produced.
@@ -284,9 +302,14 @@ pub fn build(
 ) -> Result<BuildStats, BuildError> {
     let pool = {
         let mut b = rayon::ThreadPoolBuilder::new();
-        if let Some(n) = opts.threads {
-            b = b.num_threads(n.max(1));
+        let mut n = opts
+            .threads
+            .unwrap_or_else(rayon::current_num_threads)
+            .max(1);
+        if let Some(m) = opts.grid_memory {
+            n = n.min(threads_for_memory(m, plan.max_level() as usize + 1));
         }
+        b = b.num_threads(n);
         b.build()
             .map_err(|e| BuildError::Options(format!("thread pool: {e}")))?
     };
@@ -414,4 +437,19 @@ fn build_inner(
         max_level: plan.max_level(),
         colour_max_level: if colour { plan.colour_max_level() } else { 0 },
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn memory_bound_caps_threads() {
+        // 1 GiB leaves any realistic machine's cores alone.
+        assert!(threads_for_memory(1 << 30, 21) >= 64);
+        // 8 levels deep in 8 MiB: 8 MiB / (8 × 512 KiB) = 2 workers.
+        assert_eq!(threads_for_memory(8 << 20, 8), 2);
+        // Never zero.
+        assert_eq!(threads_for_memory(0, 12), 1);
+    }
 }

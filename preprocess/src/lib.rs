@@ -32,7 +32,8 @@ use std::path::Path;
 pub struct RasterOptions {
     /// Deepest level allowed.
     pub max_level: u8,
-    /// Memory bound in MiB (raster chunk caches get half of it).
+    /// Memory bound in MiB (raster chunk caches get half of it, in-flight
+    /// grids the other half: see [`BuildOptions::grid_memory`]).
     pub max_memory_mb: usize,
     /// Worker threads.
     pub threads: Option<usize>,
@@ -94,6 +95,8 @@ pub fn build_rasters(
         &BuildOptions {
             threads: opts.threads,
             quiet: opts.quiet,
+            // The raster caches get half of the bound; the grids the rest.
+            grid_memory: Some(opts.max_memory_mb.max(8) << 19),
         },
     )
 }

@@ -52,9 +52,12 @@ enum Cmd {
         /// Deepest level (rasters).
         #[arg(long, default_value_t = 16)]
         max_level: u8,
-        /// Memory bound in MiB.
+        /// Memory bound in MiB (raster caches and in-flight grids).
         #[arg(long, default_value_t = 1024)]
         max_memory: usize,
+        /// Print the process's peak resident set (VmHWM) after the build.
+        #[arg(long)]
+        report_memory: bool,
         /// Worker threads.
         #[arg(long)]
         threads: Option<usize>,
@@ -115,6 +118,7 @@ fn run() -> Result<()> {
             max_memory,
             threads,
             quiet,
+            report_memory,
         } => {
             let stats = if procedural {
                 let datum = match radius {
@@ -131,6 +135,7 @@ fn run() -> Result<()> {
                     colour: !no_colour,
                     threads,
                     quiet,
+                    max_memory_mb: Some(max_memory),
                 };
                 planet_preprocess::build_procedural(&opts, &out)
                     .with_context(|| format!("building {}", out.display()))?
@@ -164,6 +169,20 @@ fn run() -> Result<()> {
                 stats.seconds,
                 stats.samples_per_second() / 1e6
             );
+            if report_memory {
+                // Linux only; absent elsewhere.
+                let hwm = std::fs::read_to_string("/proc/self/status")
+                    .ok()
+                    .and_then(|s| {
+                        s.lines()
+                            .find(|l| l.starts_with("VmHWM:"))
+                            .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+                    });
+                match hwm {
+                    Some(kib) => println!("peak_rss_kib {kib}"),
+                    None => println!("peak_rss_kib unknown"),
+                }
+            }
         }
         Cmd::Verify { db: path } => match db::verify(&path) {
             Ok(r) => println!(

@@ -36,6 +36,9 @@ pub struct ProceduralOptions {
     pub threads: Option<usize>,
     /// Hide progress bars.
     pub quiet: bool,
+    /// Memory bound in MiB for the in-flight grids (`None`: unbounded; see
+    /// [`BuildOptions::grid_memory`]).
+    pub max_memory_mb: Option<usize>,
 }
 
 /// The small default planet other crates embed: seed 1, 4 levels (blocks of
@@ -49,6 +52,7 @@ pub fn default_procedural_options() -> ProceduralOptions {
         colour: true,
         threads: None,
         quiet: true,
+        max_memory_mb: None,
     }
 }
 
@@ -69,6 +73,7 @@ pub fn build_procedural(opts: &ProceduralOptions, out: &Path) -> Result<BuildSta
         &BuildOptions {
             threads: opts.threads,
             quiet: opts.quiet,
+            grid_memory: opts.max_memory_mb.map(|m| m << 20),
         },
     )
 }
@@ -144,18 +149,19 @@ impl Procedural {
         [h, 0.4 + 2.0 * mountains, moisture]
     }
 
-    /// The per-sample detail octaves.
-    fn high(&self, p: [f64; 3]) -> f64 {
+    /// The per-sample detail octaves: `(seed, frequency, amplitude)` of each,
+    /// computed as the original loop did (bit-identical factors).
+    fn high_octaves(&self) -> Vec<(u64, f64, f64)> {
         let k0 = self.detail_octaves.saturating_sub(HIGH_OCTAVES);
         let mut f = DETAIL_F0 * 2f64.powi(k0 as i32);
         let mut a = 420.0 * 0.5f64.powi(k0 as i32);
-        let mut h = 0.0;
+        let mut out = Vec::with_capacity(HIGH_OCTAVES as usize);
         for k in k0..self.detail_octaves {
-            h += a * noise(self.seed ^ (0x100 + k as u64), scale(p, f));
+            out.push((self.seed ^ (0x100 + k as u64), f, a));
             f *= 2.0;
             a *= 0.5;
         }
-        h
+        out
     }
 
     fn lattice(&self, b: BlockId, us: &[f64], vs: &[f64]) -> Vec<[f64; 3]> {
@@ -171,27 +177,47 @@ impl Procedural {
     }
 
     /// Elevation (metres, before quantisation) of a leaf's samples.
+    ///
+    /// Per sample: the bilinear lattice fields and the [`HIGH_OCTAVES`] detail
+    /// octaves, each through a [`CachedNoise`] (consecutive samples of a row
+    /// share cells). The interpolation weights are per row and per column.
     fn leaf_elevation(&self, b: BlockId) -> (Vec<i16>, Vec<[f64; 3]>) {
         let (us, vs) = plane_axes(b);
         let lat = self.lattice(b, &us, &vs);
         let side = EW + 1;
         let n = EW / LATTICE + 1;
+        let octaves = self.high_octaves();
+        let mut caches: Vec<CachedNoise> = octaves.iter().map(|o| CachedNoise::new(o.0)).collect();
+        let cols: Vec<(usize, usize, f64)> = (0..side)
+            .map(|i| {
+                let li = i / LATTICE;
+                (
+                    li,
+                    (li + 1).min(n - 1),
+                    (i % LATTICE) as f64 / LATTICE as f64,
+                )
+            })
+            .collect();
         let mut out = vec![0i16; side * side];
         for j in 0..side {
             let (lj, fj) = (j / LATTICE, (j % LATTICE) as f64 / LATTICE as f64);
             let lj1 = (lj + 1).min(n - 1);
-            for i in 0..side {
-                let (li, fi) = (i / LATTICE, (i % LATTICE) as f64 / LATTICE as f64);
-                let li1 = (li + 1).min(n - 1);
+            let (r0, r1) = (&lat[lj * n..lj * n + n], &lat[lj1 * n..lj1 * n + n]);
+            let row = &mut out[j * side..(j + 1) * side];
+            for (i, o) in row.iter_mut().enumerate() {
+                let (li, li1, fi) = cols[i];
                 let interp = |c: usize| {
-                    let a = lat[lj * n + li][c] + (lat[lj * n + li1][c] - lat[lj * n + li][c]) * fi;
-                    let d =
-                        lat[lj1 * n + li][c] + (lat[lj1 * n + li1][c] - lat[lj1 * n + li][c]) * fi;
+                    let a = r0[li][c] + (r0[li1][c] - r0[li][c]) * fi;
+                    let d = r1[li][c] + (r1[li1][c] - r1[li][c]) * fi;
                     a + (d - a) * fj
                 };
                 let p = normalize(b.face.cube_point(us[i], vs[j]));
-                let h = interp(0) + interp(1) * self.high(p);
-                out[j * side + i] = h.round().clamp(-8000.0, 8000.0) as i16;
+                let mut hi = 0.0;
+                for (cache, &(_, f, a)) in caches.iter_mut().zip(&octaves) {
+                    hi += a * cache.eval(scale(p, f));
+                }
+                let h = interp(0) + interp(1) * hi;
+                *o = round_half_away(h).clamp(-8000.0, 8000.0) as i16;
             }
         }
         (out, lat)
@@ -227,6 +253,10 @@ impl Procedural {
         full
     }
 
+    /// The colour grid of a leaf from its elevation grid. The per-texel
+    /// position arithmetic is done once per column and per row, the lattice
+    /// fields' horizontal interpolation once per lattice row band; the
+    /// arithmetic of each value is exactly the per-texel original's.
     fn colour_for(&self, b: BlockId, elev: &[i16]) -> Vec<Rgb> {
         let (us, vs) = plane_axes(b);
         let n = EW / LATTICE + 1;
@@ -245,35 +275,62 @@ impl Procedural {
         let mut out = Vec::with_capacity(CW * CW);
         let ratio = EW as f64 / CW as f64;
         let l = b.level as i32;
+        let slope_scale = 2.0f64.powi(-l) * 1.0e5;
+        // Texel centre position in grid cells and lattice cells, per column
+        // (and the same per row).
+        struct Axis {
+            x0: usize,
+            fx: f64,
+            mi: usize,
+            mfx: f64,
+        }
+        let axis = |k: usize| {
+            let g = (k as f64 + 0.5) * ratio;
+            let m = g / LATTICE as f64;
+            let mi = (m.floor() as usize).min(n - 2);
+            Axis {
+                x0: g.floor() as usize,
+                fx: g.fract(),
+                mi,
+                mfx: m - mi as f64,
+            }
+        };
+        let cols: Vec<Axis> = (0..CW).map(axis).collect();
+        // Per lattice row band `mj`: for each column, the horizontally
+        // interpolated moisture and latitude on lattice rows mj and mj + 1.
+        let mut band = usize::MAX;
+        let mut hm = vec![[0f64; 4]; CW];
         for j in 0..CW {
-            let gy = (j as f64 + 0.5) * ratio;
-            let (y0, fy) = (gy.floor() as usize, gy.fract());
-            for i in 0..CW {
-                let gx = (i as f64 + 0.5) * ratio;
-                let (x0, fx) = (gx.floor() as usize, gx.fract());
-                let at = |x: usize, y: usize| elev[y * side + x] as f64;
-                let top = at(x0, y0) + (at(x0 + 1, y0) - at(x0, y0)) * fx;
-                let bot = at(x0, y0 + 1) + (at(x0 + 1, y0 + 1) - at(x0, y0 + 1)) * fx;
+            let ra = axis(j);
+            let (y0, fy, mj, mfy) = (ra.x0, ra.fx, ra.mi, ra.mfx);
+            if mj != band {
+                band = mj;
+                for (c, h) in cols.iter().zip(hm.iter_mut()) {
+                    let (mi, mfx) = (c.mi, c.mfx);
+                    let row = |g: &[f64], r: usize| {
+                        g[r * n + mi] + (g[r * n + mi + 1] - g[r * n + mi]) * mfx
+                    };
+                    *h = [
+                        row(&moist, mj),
+                        row(&moist, mj + 1),
+                        row(&lats, mj),
+                        row(&lats, mj + 1),
+                    ];
+                }
+            }
+            let e0 = &elev[y0 * side..(y0 + 1) * side];
+            let e1 = &elev[(y0 + 1) * side..(y0 + 2) * side];
+            for (c, h4) in cols.iter().zip(&hm) {
+                let (x0, fx) = (c.x0, c.fx);
+                let (a00, a10) = (e0[x0] as f64, e0[x0 + 1] as f64);
+                let (a01, a11) = (e1[x0] as f64, e1[x0 + 1] as f64);
+                let top = a00 + (a10 - a00) * fx;
+                let bot = a01 + (a11 - a01) * fx;
                 let h = top + (bot - top) * fy;
-                let mx = gx / LATTICE as f64;
-                let my = gy / LATTICE as f64;
-                let (mi, mj) = (
-                    (mx.floor() as usize).min(n - 2),
-                    (my.floor() as usize).min(n - 2),
-                );
-                let (mfx, mfy) = (mx - mi as f64, my - mj as f64);
-                let bil = |g: &[f64]| {
-                    let a = g[mj * n + mi] + (g[mj * n + mi + 1] - g[mj * n + mi]) * mfx;
-                    let c = g[(mj + 1) * n + mi]
-                        + (g[(mj + 1) * n + mi + 1] - g[(mj + 1) * n + mi]) * mfx;
-                    a + (c - a) * mfy
-                };
-                let m = bil(&moist);
-                let lat = bil(&lats);
+                let m = h4[0] + (h4[1] - h4[0]) * mfy;
+                let lat = h4[2] + (h4[3] - h4[2]) * mfy;
                 // Slope (for rock on steep terrain), from the elevation grid.
-                let slope = ((at(x0 + 1, y0) - at(x0, y0)).abs()
-                    + (at(x0, y0 + 1) - at(x0, y0)).abs())
-                    / (2.0f64.powi(-l) * 1.0e5);
+                let slope = ((a10 - a00).abs() + (a01 - a00).abs()) / slope_scale;
                 out.push(palette(h, lat, m, slope));
             }
         }
@@ -302,6 +359,29 @@ fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
     ]
 }
 
+/// [`lerp3`] that skips the arithmetic where `t ≤ 0` (the result is then `a`
+/// exactly: `a + (b − a)·0 = a` for finite `a`), which is most texels for
+/// most of the palette's layers.
+#[inline(always)]
+fn blend(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
+    if t > 0.0 {
+        lerp3(a, b, t)
+    } else {
+        a
+    }
+}
+
+/// `smoothstep(a, b, x)` where `x ≤ a` is 0 without the division (exactly
+/// what the clamp makes of it).
+#[inline(always)]
+fn step_from(a: f64, b: f64, x: f64) -> f64 {
+    if x <= a {
+        0.0
+    } else {
+        smoothstep(a, b, x)
+    }
+}
+
 /// Colour by altitude (m), |latitude| (degrees), moisture and slope.
 fn palette(h: f64, lat: f64, moisture: f64, slope: f64) -> Rgb {
     let c = if h < 0.0 {
@@ -309,24 +389,24 @@ fn palette(h: f64, lat: f64, moisture: f64, slope: f64) -> Rgb {
     } else if h < 25.0 {
         [214.0, 200.0, 150.0]
     } else {
-        let arid = smoothstep(0.0, 0.3, 1.0 - (lat - 24.0).abs() / 14.0 - moisture * 1.5);
+        let arid = step_from(0.0, 0.3, 1.0 - (lat - 24.0).abs() / 14.0 - moisture * 1.5);
         let green = lerp3([52.0, 110.0, 44.0], [96.0, 128.0, 64.0], h / 2000.0);
-        let mut c = lerp3(green, [204.0, 172.0, 112.0], arid);
-        c = lerp3(c, [120.0, 122.0, 96.0], smoothstep(50.0, 66.0, lat)); // tundra
-        c = lerp3(
+        let mut c = blend(green, [204.0, 172.0, 112.0], arid);
+        c = blend(c, [120.0, 122.0, 96.0], step_from(50.0, 66.0, lat)); // tundra
+        c = blend(
             c,
             [118.0, 106.0, 96.0],
-            smoothstep(2200.0, 3200.0, h).max(slope.min(1.0) * 0.6),
+            step_from(2200.0, 3200.0, h).max(slope.min(1.0) * 0.6),
         );
         let snowline = 5200.0 - 4200.0 * (lat / 75.0).min(1.0);
-        lerp3(
+        blend(
             c,
             [244.0, 245.0, 250.0],
-            smoothstep(snowline, snowline + 400.0, h),
+            step_from(snowline, snowline + 400.0, h),
         )
     };
-    let ice = smoothstep(72.0, 78.0, lat + moisture * 4.0);
-    let c = lerp3(c, [236.0, 242.0, 248.0], ice);
+    let ice = step_from(72.0, 78.0, lat + moisture * 4.0);
+    let c = blend(c, [236.0, 242.0, 248.0], ice);
     [c[0] as u8, c[1] as u8, c[2] as u8]
 }
 
@@ -361,6 +441,25 @@ impl GridSource for Procedural {
     }
 }
 
+/// `f64::round` (half away from zero) without the libm call, for the values
+/// the generator produces; identical to `round` for |x| < 2^52, and beyond
+/// that both clamp to the same stored value.
+#[inline]
+fn round_half_away(x: f64) -> f64 {
+    if x.abs() >= 4_503_599_627_370_496.0 || x.is_nan() {
+        return x.round();
+    }
+    let t = x as i64 as f64; // truncation, exact here
+    let d = x - t; // exact (Sterbenz)
+    if d >= 0.5 {
+        t + 1.0
+    } else if d <= -0.5 {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 // ---- noise -----------------------------------------------------------------
 
 #[inline]
@@ -387,22 +486,53 @@ fn hash(seed: u64, x: i64, y: i64, z: i64) -> u64 {
     h ^ (h >> 33)
 }
 
-#[inline]
-fn grad(h: u64, x: f64, y: f64, z: f64) -> f64 {
-    match h & 15 {
-        0 | 12 => x + y,
-        1 | 13 => -x + y,
-        2 => x - y,
-        3 => -x - y,
-        4 => x + z,
-        5 => -x + z,
-        6 => x - z,
-        7 => -x - z,
-        8 => y + z,
-        9 | 14 => -y + z,
-        10 => y - z,
-        _ => -y - z,
+/// The gradient of `grad`'s 16 cases, as (first operand, second operand,
+/// negate first, negate second): case 0 is `x + y`, 1 `-x + y`, 2 `x - y`,
+/// 3 `-x - y`, 4..7 the same with `x, z`, 8..11 with `y, z`, 12 `x + y`,
+/// 13 `-x + y`, 14 `-y + z`, 15 `-y - z`.
+const GRAD: [(u8, u8, bool, bool); 16] = [
+    (0, 1, false, false),
+    (0, 1, true, false),
+    (0, 1, false, true),
+    (0, 1, true, true),
+    (0, 2, false, false),
+    (0, 2, true, false),
+    (0, 2, false, true),
+    (0, 2, true, true),
+    (1, 2, false, false),
+    (1, 2, true, false),
+    (1, 2, false, true),
+    (1, 2, true, true),
+    (0, 1, false, false),
+    (0, 1, true, false),
+    (1, 2, true, false),
+    (1, 2, true, true),
+];
+
+/// The 16 gradient cases packed one byte each: bits 0–1 first operand,
+/// 2–3 second operand, 4 negate first, 5 negate second.
+const GRAD_PACKED: [u8; 16] = {
+    let mut t = [0u8; 16];
+    let mut k = 0;
+    while k < 16 {
+        let (a, b, na, nb) = GRAD[k];
+        t[k] = a | (b << 2) | ((na as u8) << 4) | ((nb as u8) << 5);
+        k += 1;
     }
+    t
+};
+
+/// `±a ± b` of the hashed case, without data-dependent branches. Negation is
+/// a sign-bit flip and `a - b` is `a + (-b)` in IEEE arithmetic, so this is
+/// bit-identical to writing the 16 expressions out.
+#[inline(always)]
+fn grad(code: u8, x: f64, y: f64, z: f64) -> f64 {
+    let v = [x, y, z];
+    let a = v[(code & 3) as usize];
+    let b = v[((code >> 2) & 3) as usize];
+    let sa = ((code as u64 >> 4) & 1) << 63;
+    let sb = ((code as u64 >> 5) & 1) << 63;
+    f64::from_bits(a.to_bits() ^ sa) + f64::from_bits(b.to_bits() ^ sb)
 }
 
 /// `floor` without a libm call (exact for |x| < 2^52).
@@ -421,26 +551,67 @@ fn fade(t: f64) -> f64 {
     t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
 }
 
+/// The gradient codes of the 8 corners of lattice cell `(xi, yi, zi)`, in the
+/// order `(dx, dy, dz)` = 000, 100, 010, 110, 001, 101, 011, 111.
+#[inline]
+fn corner_codes(seed: u64, xi: i64, yi: i64, zi: i64) -> [u8; 8] {
+    let mut out = [0u8; 8];
+    for (k, o) in out.iter_mut().enumerate() {
+        let (dx, dy, dz) = ((k & 1) as i64, ((k >> 1) & 1) as i64, (k >> 2) as i64);
+        *o = GRAD_PACKED[(hash(seed, xi + dx, yi + dy, zi + dz) & 15) as usize];
+    }
+    out
+}
+
+/// Noise inside one cell from its corner codes and the fractional position.
+#[inline(always)]
+fn noise_in_cell(c: &[u8; 8], x: f64, y: f64, z: f64) -> f64 {
+    let (u, v, w) = (fade(x), fade(y), fade(z));
+    let (x1, y1, z1) = (x - 1.0, y - 1.0, z - 1.0);
+    let l = |a: f64, b: f64, t: f64| a + (b - a) * t;
+    let x00 = l(grad(c[0], x, y, z), grad(c[1], x1, y, z), u);
+    let x10 = l(grad(c[2], x, y1, z), grad(c[3], x1, y1, z), u);
+    let x01 = l(grad(c[4], x, y, z1), grad(c[5], x1, y, z1), u);
+    let x11 = l(grad(c[6], x, y1, z1), grad(c[7], x1, y1, z1), u);
+    l(l(x00, x10, v), l(x01, x11, v), w) * 0.9
+}
+
 /// 3D gradient noise in about [-1, 1].
 pub fn noise(seed: u64, p: [f64; 3]) -> f64 {
     let (xf, yf, zf) = (ffloor(p[0]), ffloor(p[1]), ffloor(p[2]));
-    let (x, y, z) = (p[0] - xf, p[1] - yf, p[2] - zf);
-    let (xi, yi, zi) = (xf as i64, yf as i64, zf as i64);
-    let (u, v, w) = (fade(x), fade(y), fade(z));
-    let g = |dx: i64, dy: i64, dz: i64| {
-        grad(
-            hash(seed, xi + dx, yi + dy, zi + dz),
-            x - dx as f64,
-            y - dy as f64,
-            z - dz as f64,
-        )
-    };
-    let l = |a: f64, b: f64, t: f64| a + (b - a) * t;
-    let x00 = l(g(0, 0, 0), g(1, 0, 0), u);
-    let x10 = l(g(0, 1, 0), g(1, 1, 0), u);
-    let x01 = l(g(0, 0, 1), g(1, 0, 1), u);
-    let x11 = l(g(0, 1, 1), g(1, 1, 1), u);
-    l(l(x00, x10, v), l(x01, x11, v), w) * 0.9
+    let c = corner_codes(seed, xf as i64, yf as i64, zf as i64);
+    noise_in_cell(&c, p[0] - xf, p[1] - yf, p[2] - zf)
+}
+
+/// [`noise`] of one seed that keeps the corner hashes of the last cell it
+/// was evaluated in: neighbouring samples mostly fall in the same cell.
+/// Bit-identical to [`noise`].
+#[derive(Debug, Clone)]
+struct CachedNoise {
+    seed: u64,
+    cell: Option<[i64; 3]>,
+    codes: [u8; 8],
+}
+
+impl CachedNoise {
+    fn new(seed: u64) -> CachedNoise {
+        CachedNoise {
+            seed,
+            cell: None,
+            codes: [0; 8],
+        }
+    }
+
+    #[inline]
+    fn eval(&mut self, p: [f64; 3]) -> f64 {
+        let (xf, yf, zf) = (ffloor(p[0]), ffloor(p[1]), ffloor(p[2]));
+        let cell = [xf as i64, yf as i64, zf as i64];
+        if self.cell != Some(cell) {
+            self.codes = corner_codes(self.seed, cell[0], cell[1], cell[2]);
+            self.cell = Some(cell);
+        }
+        noise_in_cell(&self.codes, p[0] - xf, p[1] - yf, p[2] - zf)
+    }
 }
 
 /// Fractal Brownian motion, `octaves` octaves, lacunarity 2, gain 0.5.

@@ -19,8 +19,8 @@
 
 use crate::build::GridSource;
 use crate::error::{BuildError, GeoError};
-use crate::geotiff::GeoTiff;
-use planet_core::cube::{plane_from_angle, sample_coord};
+use crate::geotiff::{GeoTiff, TiffReader};
+use planet_core::cube::{lat_lon_from_direction, normalize, plane_from_angle, sample_coord};
 use planet_core::lod::Rgb;
 use planet_core::{BlockId, Datum, FaceCoord};
 use std::path::Path;
@@ -80,20 +80,61 @@ impl ElevationStack {
         Ok(ElevationStack { layers })
     }
 
+    /// A reader of the stack with per-layer chunk memos (one per worker and
+    /// block: see [`crate::geotiff::TiffReader`]).
+    pub fn reader(&self) -> StackReader<'_> {
+        StackReader {
+            layers: self.layers.iter().map(|l| l.tiff.reader()).collect(),
+        }
+    }
+
     /// Elevation in metres at (lat, lon) degrees: the finest covering layer,
     /// bilinear, voids filled. 0 where nothing covers the point.
     pub fn sample(&self, lat: f64, lon: f64) -> Result<f64, GeoError> {
+        self.reader().sample(lat, lon)
+    }
+
+    /// Bilinear sample of layer `idx` (voids filled).
+    pub fn sample_layer(&self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
+        self.reader().sample_layer(idx, lat, lon)
+    }
+
+    /// Value of one pixel of layer `idx`, voids filled.
+    pub fn pixel(&self, idx: usize, col: i64, row: i64) -> Result<f64, GeoError> {
+        self.reader().pixel(idx, col, row)
+    }
+
+    /// The finest level of any layer whose footprint intersects the block.
+    pub fn level_needed(&self, b: BlockId) -> u8 {
+        let mut best = 0;
+        for l in &self.layers {
+            if l.level > best && footprint_intersects(&l.tiff, b) {
+                best = l.level;
+            }
+        }
+        best
+    }
+}
+
+/// Reads of an [`ElevationStack`] by one worker (lock-free on chunk hits).
+pub struct StackReader<'a> {
+    layers: Vec<TiffReader<'a>>,
+}
+
+impl StackReader<'_> {
+    /// [`ElevationStack::sample`].
+    pub fn sample(&mut self, lat: f64, lon: f64) -> Result<f64, GeoError> {
         for idx in (0..self.layers.len()).rev() {
-            if self.layers[idx].tiff.covers(lat, lon) {
+            if self.layers[idx].tiff().covers(lat, lon) {
                 return self.sample_layer(idx, lat, lon);
             }
         }
         Ok(0.0)
     }
 
-    /// Bilinear sample of layer `idx` (voids filled).
-    pub fn sample_layer(&self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
-        let t = &self.layers[idx].tiff;
+    /// [`ElevationStack::sample_layer`].
+    pub fn sample_layer(&mut self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
+        let t = self.layers[idx].tiff();
         let (c, r) = t.pixel_of(lat, lon);
         let (c0, r0) = (c.floor(), r.floor());
         let (fc, fr) = (c - c0, r - r0);
@@ -107,20 +148,20 @@ impl ElevationStack {
         Ok(top + (bot - top) * fr)
     }
 
-    /// Value of one pixel of layer `idx`, voids filled.
-    pub fn pixel(&self, idx: usize, col: i64, row: i64) -> Result<f64, GeoError> {
-        let t = &self.layers[idx].tiff;
-        let v = t.elevation(col, row)?;
+    /// [`ElevationStack::pixel`].
+    pub fn pixel(&mut self, idx: usize, col: i64, row: i64) -> Result<f64, GeoError> {
+        let v = self.layers[idx].elevation(col, row)?;
         if !v.is_nan() {
             return Ok(v as f64);
         }
-        let (lat, lon) = t.position_of(col, row);
+        let (lat, lon) = self.layers[idx].tiff().position_of(col, row);
         for j in (0..idx).rev() {
-            if self.layers[j].tiff.covers(lat, lon) {
+            if self.layers[j].tiff().covers(lat, lon) {
                 return self.sample_layer(j, lat, lon);
             }
         }
         // No coarser source: mean of the nearest ring of valid neighbours.
+        let t = &mut self.layers[idx];
         for radius in 1..=64i64 {
             let (mut sum, mut n) = (0.0, 0u32);
             for d in -radius..=radius {
@@ -137,17 +178,6 @@ impl ElevationStack {
             }
         }
         Ok(0.0)
-    }
-
-    /// The finest level of any layer whose footprint intersects the block.
-    pub fn level_needed(&self, b: BlockId) -> u8 {
-        let mut best = 0;
-        for l in &self.layers {
-            if l.level > best && footprint_intersects(&l.tiff, b) {
-                best = l.level;
-            }
-        }
-        best
     }
 }
 
@@ -245,15 +275,20 @@ impl ColourSource {
 
     /// Bilinear colour at (lat, lon) degrees.
     pub fn sample(&self, lat: f64, lon: f64) -> Result<Rgb, GeoError> {
-        let (c, r) = self.tiff.pixel_of(lat, lon);
+        Self::sample_with(&mut self.tiff.reader(), lat, lon)
+    }
+
+    /// [`ColourSource::sample`] through a worker's reader of this raster.
+    pub fn sample_with(rd: &mut TiffReader<'_>, lat: f64, lon: f64) -> Result<Rgb, GeoError> {
+        let (c, r) = rd.tiff().pixel_of(lat, lon);
         let (c0, r0) = (c.floor(), r.floor());
         let (fc, fr) = (c - c0, r - r0);
         let (c0, r0) = (c0 as i64, r0 as i64);
         let p = [
-            self.tiff.colour(c0, r0)?,
-            self.tiff.colour(c0 + 1, r0)?,
-            self.tiff.colour(c0, r0 + 1)?,
-            self.tiff.colour(c0 + 1, r0 + 1)?,
+            rd.colour(c0, r0)?,
+            rd.colour(c0 + 1, r0)?,
+            rd.colour(c0, r0 + 1)?,
+            rd.colour(c0 + 1, r0 + 1)?,
         ];
         let mut out = [0u8; 3];
         for ch in 0..3 {
@@ -285,11 +320,22 @@ pub fn quantise(m: f64, scale: f64) -> i16 {
 
 impl GridSource for RasterSource {
     fn elevation_leaf(&self, b: BlockId, out: &mut [i16]) -> Result<(), BuildError> {
+        // Equal-angle grid: the tangents are per column and per row; each
+        // sample's direction is then `normalize(cube_point(u, v))`, exactly
+        // `elevation_sample_lat_lon`'s arithmetic.
         let w = ELEVATION_WIDTH;
+        let n = (w as u64) << b.level;
+        let axis = |o: u32| -> Vec<f64> {
+            (0..=w as u64)
+                .map(|i| plane_from_angle(sample_coord(o as u64 * w as u64 + i, n)))
+                .collect()
+        };
+        let (us, vs) = (axis(b.x), axis(b.y));
+        let mut rd = self.elevation.reader();
         for j in 0..=w {
             for i in 0..=w {
-                let (la, lo) = elevation_sample_lat_lon(b, w, i, j);
-                let m = self.elevation.sample(la.to_degrees(), lo.to_degrees())?;
+                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(us[i], vs[j])));
+                let m = rd.sample(la.to_degrees(), lo.to_degrees())?;
                 out[j * (w + 1) + i] = quantise(m, self.scale);
             }
         }
@@ -301,11 +347,23 @@ impl GridSource for RasterSource {
         let Some(c) = &self.colour else {
             return Ok(vec![[0; 3]; w * w]);
         };
+        let n = (w as f64) * 2f64.powi(b.level as i32);
+        let axis = |o: u32| -> Vec<f64> {
+            (0..w)
+                .map(|i| plane_from_angle((o as f64 * w as f64 + i as f64 + 0.5) / n))
+                .collect()
+        };
+        let (us, vs) = (axis(b.x), axis(b.y));
+        let mut rd = c.tiff.reader();
         let mut out = Vec::with_capacity(w * w);
-        for j in 0..w {
-            for i in 0..w {
-                let (la, lo) = colour_texel_lat_lon(b, w, i, j);
-                out.push(c.sample(la.to_degrees(), lo.to_degrees())?);
+        for &v in &vs {
+            for &u in &us {
+                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(u, v)));
+                out.push(ColourSource::sample_with(
+                    &mut rd,
+                    la.to_degrees(),
+                    lo.to_degrees(),
+                )?);
             }
         }
         Ok(out)
