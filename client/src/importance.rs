@@ -42,7 +42,9 @@ pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -
     if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return IMPORTANCE_NEAR;
     }
-    let q1 = if qf.is_finite() {
+    // +∞ and NaN mean "best quality"; −∞ (like any negative QF) means none,
+    // so importance stays monotone in QF over the whole extended line.
+    let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
         qf.max(0.0).sqrt()
     } else {
         f64::MAX.sqrt()
