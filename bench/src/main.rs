@@ -1,1 +1,67 @@
-fn main() {}
+//! `planet-bench`: benchmarks of the planet system.
+//!
+//! - `flight`: fly a trajectory with a headless streaming client against an
+//!   in-process server behind a simulated link, per link: CSV, PNG plots and
+//!   a summary table (error against run time and bytes).
+//! - `resident`: CPU time of the client's per-frame selection and scheduling
+//!   with at least 10 000 resident blocks (synthetic tree, no network).
+//! - `server`: QUIC request throughput and latency against nginx (HTTPS
+//!   byte ranges) on the same file and request list.
+//! - `load`: 1000 lightweight streaming clients against one server.
+
+mod flight;
+mod load;
+mod plot;
+mod resident;
+mod server_bench;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "planet-bench",
+    about = "Benchmarks of the planet streaming system"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Fly a trajectory over real QUIC through simulated links.
+    Flight(flight::FlightArgs),
+    /// Selection + scheduling CPU per frame with ≥ 10 000 resident blocks.
+    Resident(resident::ResidentArgs),
+    /// QUIC request throughput and latency of planet-server, against nginx
+    /// serving the same file over HTTPS byte ranges (--nginx).
+    Server(server_bench::ServerArgs),
+    /// Many lightweight streaming clients against one server: load held,
+    /// latency, errors, server CPU and memory per connection.
+    Load(load::LoadArgs),
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Flight(a) => flight::run(a),
+        Command::Resident(a) => resident::run(a),
+        Command::Server(a) => server_bench::run(a),
+        Command::Load(a) => load::run(a),
+    }
+}
+
+/// CPU time consumed by the calling thread.
+pub fn thread_cpu() -> std::time::Duration {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the valid timespec we pass.
+    let r = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    if r != 0 {
+        return std::time::Duration::ZERO;
+    }
+    std::time::Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+}

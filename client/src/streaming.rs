@@ -105,9 +105,10 @@ impl StreamingClient {
                 handle.close();
                 return Err(StreamingError::Timeout { timeout, last });
             }
-            match handle.wait_event(left.min(Duration::from_millis(50))) {
-                Some(NetEvent::Connected(w)) => break w,
-                Some(_) | None => {}
+            if let Some(NetEvent::Connected(w)) =
+                handle.wait_event(left.min(Duration::from_millis(50)))
+            {
+                break w;
             }
         };
         counters.connects = 1;
@@ -173,7 +174,8 @@ impl StreamingClient {
                 NetEvent::Failed { id, error } => {
                     self.counters.failures += 1;
                     self.cancelled.remove(&id);
-                    self.client.deliver(id, Err(TransportError(error.to_string())));
+                    self.client
+                        .deliver(id, Err(TransportError(error.to_string())));
                 }
                 NetEvent::Cancelled { id } => {
                     self.cancelled.remove(&id);

@@ -261,7 +261,8 @@ impl Trajectory {
             };
         };
         let last = ks[ks.len() - 1];
-        if !(t > first.t) {
+        // `t <= first.t`, or NaN: clamp to the first keyframe.
+        if t.partial_cmp(&first.t) != Some(std::cmp::Ordering::Greater) {
             return Keyframe { t, ..*first };
         }
         if t >= last.t {
@@ -299,7 +300,13 @@ impl Trajectory {
         aspect: f64,
         viewport_height_px: f64,
     ) -> Camera {
-        camera_from_keyframe(&self.keyframe_at(t), datum, fov_y, aspect, viewport_height_px)
+        camera_from_keyframe(
+            &self.keyframe_at(t),
+            datum,
+            fov_y,
+            aspect,
+            viewport_height_px,
+        )
     }
 }
 
@@ -351,11 +358,47 @@ mod tests {
             assert!(t.duration() > 0.0);
         }
         assert!(Trajectory::builtin("nope").is_none());
+        // bench/trajectories/*.txt mirror the built-ins.
+        for (name, file) in [
+            (
+                "rainier",
+                include_str!("../../bench/trajectories/rainier.txt"),
+            ),
+            (
+                "everest",
+                include_str!("../../bench/trajectories/everest.txt"),
+            ),
+            ("orbit", include_str!("../../bench/trajectories/orbit.txt")),
+            (
+                "static-low",
+                include_str!("../../bench/trajectories/static-low.txt"),
+            ),
+        ] {
+            assert_eq!(
+                Trajectory::parse(file).unwrap(),
+                Trajectory::builtin(name).unwrap()
+            );
+        }
+        // The rainier flight: orbit, a stop of at least 10 s, ≥ 300 m/s.
+        let r = Trajectory::builtin("rainier").unwrap();
+        assert!(r.keyframes[0].alt_m >= 1.9e7);
+        let d = Datum::WGS84;
+        let speed = |t: f64| {
+            let a = r.camera_at(t, &d, 1.0, 1.0, 100.0).eye;
+            let b = r.camera_at(t + 0.1, &d, 1.0, 1.0, 100.0).eye;
+            (b - a).length() / 0.1
+        };
+        assert!(speed(40.0) >= 300.0 && speed(58.0) >= 300.0);
+        assert_eq!(speed(25.0), 0.0);
+        assert_eq!(speed(33.0), 0.0);
     }
 
     #[test]
     fn parse_errors() {
-        assert!(matches!(Trajectory::parse("# nothing\n"), Err(TrajectoryError::Empty)));
+        assert!(matches!(
+            Trajectory::parse("# nothing\n"),
+            Err(TrajectoryError::Empty)
+        ));
         assert!(matches!(
             Trajectory::parse("0 0 0 1 0 0\n0 0 0 1 0 0\n"),
             Err(TrajectoryError::NotIncreasing { line: 2, .. })

@@ -230,9 +230,9 @@ fn near_far_never_cull_a_visible_surface_point() {
                 let eye = unit(ea, eb) * (r_max + alt);
                 let pts = surface_points(eye, r_min, r_max);
                 for dir in directions(eye) {
-                    for fov_deg in [1.0, 60.0, 170.0] {
+                    for fov_deg in [1.0f64, 60.0, 170.0] {
                         let mut cam = Camera::look_at(eye, eye + dir, unit(ea + 1.0, eb));
-                        cam.fov_y = (fov_deg as f64).to_radians();
+                        cam.fov_y = fov_deg.to_radians();
                         let (near, far) = near_far(&cam, r_min, r_max);
                         assert!(
                             near.is_finite() && far.is_finite() && near >= NEAR_MIN && far > near,

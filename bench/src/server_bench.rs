@@ -1,0 +1,1251 @@
+//! `planet-bench server`: request throughput and latency of planet-server
+//! against Debian's nginx serving the same file over HTTPS byte ranges.
+//!
+//! 1. Enumerate every record of the database (`planet_preprocess::db::scan`)
+//!    and draw a seeded request list with a flight-like size mix: mostly
+//!    elevation records, some colour (`--elevation-share`), levels drawn
+//!    uniformly (a flight refines every level around the camera, so shallow
+//!    levels are requested about as often as deep ones).
+//! 2. QUIC: start planet-server (a subprocess by default, so its CPU time is
+//!    its own), open `--clients` connections, each running `--concurrency`
+//!    sequential request loops over the shared list (request `i` of the run
+//!    is `list[i % len]`); per-request latency from opening the stream to
+//!    the last body byte.
+//! 3. nginx (`--nginx`): write a config under a temporary prefix (TLS 1.3,
+//!    self-signed certificate, `sendfile on`, keep-alive), start
+//!    `/usr/sbin/nginx`, and replay **the same list** as
+//!    `Range: bytes=off-(off+size-1)` GETs: HTTP/1.1 with `--concurrency`
+//!    keep-alive connections per client (as browsers do), and HTTP/2 with one
+//!    connection per client and `--concurrency` streams (the same shape as
+//!    QUIC). Prints the QUIC/nginx ratios, then stops nginx.
+//!
+//! Connections are set up before the timed window; the figures are the
+//! steady-state request loop only. Client and server share the machine.
+
+use std::net::{SocketAddr, TcpListener};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use planet_client::net::{ConnectOptions, Connection};
+use planet_core::format::Tree;
+use planet_protocol::Hello;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Where the server under test runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ServerMode {
+    /// `planet-server` as a child process (its CPU and memory are measured).
+    Subprocess,
+    /// `planet_server::Server` on its own runtime in this process (no
+    /// separate CPU accounting; used by the smoke tests).
+    InProcess,
+}
+
+/// Which nginx protocol(s) to replay against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum HttpMode {
+    /// HTTP/1.1, `--concurrency` keep-alive connections per client.
+    H1,
+    /// HTTP/2, one connection per client, `--concurrency` streams.
+    H2,
+    /// Both, one after the other.
+    Both,
+}
+
+/// `planet-bench server` arguments.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServerArgs {
+    /// Database file (default: build the default procedural planet to
+    /// /tmp/planet-bench-default.planetdb if missing).
+    #[arg(long)]
+    pub db: Option<PathBuf>,
+    /// Concurrent client connections.
+    #[arg(long, default_value_t = 200)]
+    pub clients: usize,
+    /// Concurrent requests per client.
+    #[arg(long, default_value_t = 4)]
+    pub concurrency: usize,
+    /// Length of each timed run in seconds (ignored with --requests).
+    #[arg(long, default_value_t = 20.0)]
+    pub seconds: f64,
+    /// Run exactly this many requests per side instead of a timed run.
+    #[arg(long)]
+    pub requests: Option<usize>,
+    /// Also replay the requests against nginx over HTTPS.
+    #[arg(long)]
+    pub nginx: bool,
+    /// nginx protocol(s).
+    #[arg(long, value_enum, default_value = "both")]
+    pub http: HttpMode,
+    /// nginx binary.
+    #[arg(long, default_value = "/usr/sbin/nginx")]
+    pub nginx_bin: PathBuf,
+    /// nginx worker processes (default: the number of CPUs, like the
+    /// server's runtime).
+    #[arg(long)]
+    pub nginx_workers: Option<usize>,
+    /// Seed of the request list.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Share of elevation records in the request mix (the rest colour).
+    #[arg(long, default_value_t = 0.75)]
+    pub elevation_share: f64,
+    /// Length of the request list (replayed cyclically).
+    #[arg(long, default_value_t = 100_000)]
+    pub list_len: usize,
+    /// How the server runs.
+    #[arg(long, value_enum, default_value = "subprocess")]
+    pub server: ServerMode,
+    /// planet-server binary (default: next to this executable).
+    #[arg(long)]
+    pub server_bin: Option<PathBuf>,
+    /// Worker threads of the client runtime (default: the number of CPUs).
+    #[arg(long)]
+    pub client_threads: Option<usize>,
+}
+
+impl Default for ServerArgs {
+    fn default() -> Self {
+        ServerArgs {
+            db: None,
+            clients: 200,
+            concurrency: 4,
+            seconds: 20.0,
+            requests: None,
+            nginx: false,
+            http: HttpMode::Both,
+            nginx_bin: "/usr/sbin/nginx".into(),
+            nginx_workers: None,
+            seed: 1,
+            elevation_share: 0.75,
+            list_len: 100_000,
+            server: ServerMode::Subprocess,
+            server_bin: None,
+            client_threads: None,
+        }
+    }
+}
+
+// ---------------------------------------------------------------- shared helpers
+
+/// The default database: the default procedural planet, built once.
+pub fn default_db() -> Result<PathBuf> {
+    let path = std::env::temp_dir().join("planet-bench-default.planetdb");
+    if path.is_file() {
+        return Ok(path);
+    }
+    eprintln!(
+        "building the default procedural planet to {}",
+        path.display()
+    );
+    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    planet_preprocess::build_procedural(&planet_preprocess::default_procedural_options(), &tmp)
+        .map_err(|e| anyhow!("building the default database: {e}"))?;
+    std::fs::rename(&tmp, &path)?;
+    Ok(path)
+}
+
+/// Resolve `--db` or build the default database.
+pub fn resolve_db(db: &Option<PathBuf>) -> Result<PathBuf> {
+    match db {
+        Some(p) => {
+            if !p.is_file() {
+                bail!("database {} not found", p.display());
+            }
+            Ok(p.clone())
+        }
+        None => default_db(),
+    }
+}
+
+/// Database name the single-database server derives from the path.
+pub fn db_name(path: &Path) -> Result<String> {
+    path.file_stem()
+        .and_then(|s| s.to_str())
+        .map(str::to_string)
+        .context("database path has no file stem")
+}
+
+/// Latency figures in microseconds.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Latency {
+    /// Median.
+    pub p50: u32,
+    /// 90th percentile.
+    pub p90: u32,
+    /// 99th percentile.
+    pub p99: u32,
+    /// Maximum.
+    pub max: u32,
+    /// Mean.
+    pub mean: f64,
+}
+
+/// Percentiles of `v` (sorted in place).
+pub fn latency(v: &mut [u32]) -> Latency {
+    if v.is_empty() {
+        return Latency::default();
+    }
+    v.sort_unstable();
+    let at = |q: f64| v[((q * v.len() as f64) as usize).min(v.len() - 1)];
+    Latency {
+        p50: at(0.50),
+        p90: at(0.90),
+        p99: at(0.99),
+        max: v[v.len() - 1],
+        mean: v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64,
+    }
+}
+
+/// Formats microseconds as milliseconds.
+pub fn ms(us: u32) -> String {
+    format!("{:.2} ms", us as f64 / 1000.0)
+}
+
+fn clk_tck() -> f64 {
+    // SAFETY: sysconf has no preconditions.
+    let t = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    if t > 0 {
+        t as f64
+    } else {
+        100.0
+    }
+}
+
+/// CPU seconds (user + system) used so far by process `pid`.
+pub fn proc_cpu_seconds(pid: u32) -> Option<f64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the command name, which is in parentheses.
+    let rest = &s[s.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // rest starts at field 3 (state): utime is field 14, stime field 15.
+    let utime: f64 = f.get(11)?.parse().ok()?;
+    let stime: f64 = f.get(12)?.parse().ok()?;
+    Some((utime + stime) / clk_tck())
+}
+
+fn proc_ppid(pid: u32) -> Option<u32> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let rest = &s[s.rfind(')')? + 2..];
+    rest.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Resident memory of `pid`: (VmRSS, RssAnon) in bytes.
+pub fn proc_rss(pid: u32) -> Option<(u64, u64)> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let field = |name: &str| -> Option<u64> {
+        let line = s.lines().find(|l| l.starts_with(name))?;
+        let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+        Some(kb * 1024)
+    };
+    Some((field("VmRSS:")?, field("RssAnon:").unwrap_or(0)))
+}
+
+/// `pid` and its direct children (e.g. an nginx master and its workers).
+pub fn process_tree(pid: u32) -> Vec<u32> {
+    let mut out = vec![pid];
+    if let Ok(rd) = std::fs::read_dir("/proc") {
+        for e in rd.flatten() {
+            if let Some(p) = e.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) {
+                if proc_ppid(p) == Some(pid) {
+                    out.push(p);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Sum of CPU seconds of `pids`.
+pub fn cpu_seconds_of(pids: &[u32]) -> f64 {
+    pids.iter().filter_map(|&p| proc_cpu_seconds(p)).sum()
+}
+
+/// Load average line (`/proc/loadavg`), recorded next to every figure.
+pub fn loadavg() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
+}
+
+/// Raise the soft open-file limit to the hard limit.
+pub fn raise_nofile_limit() -> u64 {
+    // SAFETY: plain getrlimit/setrlimit on a local struct.
+    unsafe {
+        let mut r = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut r) != 0 {
+            return 0;
+        }
+        if r.rlim_cur < r.rlim_max {
+            let want = libc::rlimit {
+                rlim_cur: r.rlim_max,
+                rlim_max: r.rlim_max,
+            };
+            if libc::setrlimit(libc::RLIMIT_NOFILE, &want) == 0 {
+                return want.rlim_cur;
+            }
+        }
+        r.rlim_cur
+    }
+}
+
+/// The planet-server under test.
+pub struct ServerUnderTest {
+    /// QUIC address.
+    pub addr: SocketAddr,
+    /// Certificate fingerprint (hex SHA-256) to pin.
+    pub fingerprint: String,
+    /// Database name.
+    pub database: String,
+    child: Option<Child>,
+    in_process: Option<(tokio::runtime::Runtime, planet_server::ServerHandle)>,
+}
+
+impl ServerUnderTest {
+    /// Start the server on `db` (127.0.0.1, ephemeral port).
+    pub fn start(mode: ServerMode, db: &Path, server_bin: Option<&Path>) -> Result<Self> {
+        let database = db_name(db)?;
+        match mode {
+            ServerMode::Subprocess => {
+                let bin = match server_bin {
+                    Some(b) => b.to_path_buf(),
+                    None => default_server_bin()?,
+                };
+                let mut child = Command::new(&bin)
+                    .arg("--database")
+                    .arg(db)
+                    .args(["--listen", "127.0.0.1:0", "--dev-cert"])
+                    .env(
+                        "RUST_LOG",
+                        std::env::var("PLANET_BENCH_SERVER_LOG").unwrap_or_else(|_| "warn".into()),
+                    )
+                    .stdin(Stdio::null())
+                    .stdout(Stdio::piped())
+                    .stderr(Stdio::inherit())
+                    .spawn()
+                    .with_context(|| format!("cannot start {}", bin.display()))?;
+                let stdout = child.stdout.take().context("no stdout")?;
+                let (tx, rx) = std::sync::mpsc::channel();
+                std::thread::spawn(move || {
+                    use std::io::BufRead;
+                    for line in std::io::BufReader::new(stdout).lines() {
+                        let Ok(line) = line else { break };
+                        if tx.send(line).is_err() {
+                            // Keep draining so the server never blocks on stdout.
+                        }
+                    }
+                });
+                let mut fingerprint = None;
+                let mut addr = None;
+                let deadline = Instant::now() + Duration::from_secs(30);
+                while addr.is_none() || fingerprint.is_none() {
+                    let left = deadline.saturating_duration_since(Instant::now());
+                    let line = match rx.recv_timeout(left) {
+                        Ok(l) => l,
+                        Err(_) => {
+                            let _ = child.kill();
+                            bail!(
+                                "{} did not print its address and fingerprint",
+                                bin.display()
+                            );
+                        }
+                    };
+                    if let Some(f) = line.strip_prefix("cert-sha256 ") {
+                        fingerprint = Some(f.trim().to_string());
+                    } else if let Some(a) = line.strip_prefix("listening ") {
+                        addr = Some(a.trim().parse::<SocketAddr>()?);
+                    }
+                }
+                Ok(ServerUnderTest {
+                    addr: addr.unwrap_or_else(|| unreachable!()),
+                    fingerprint: fingerprint.unwrap_or_default(),
+                    database,
+                    child: Some(child),
+                    in_process: None,
+                })
+            }
+            ServerMode::InProcess => {
+                let rt = tokio::runtime::Builder::new_multi_thread()
+                    .worker_threads(2)
+                    .thread_name("bench-server")
+                    .enable_all()
+                    .build()?;
+                let cfg =
+                    planet_server::ServerConfig::single_database(db, "127.0.0.1:0".parse()?, "")?;
+                let handle = rt.block_on(planet_server::Server::start(cfg))?;
+                Ok(ServerUnderTest {
+                    addr: handle.local_addr(),
+                    fingerprint: handle.cert_fingerprint().to_string(),
+                    database,
+                    child: None,
+                    in_process: Some((rt, handle)),
+                })
+            }
+        }
+    }
+
+    /// The server's pid when it is a subprocess.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(|c| c.id())
+    }
+
+    /// The hello for this server's database.
+    pub fn hello(&self) -> Hello {
+        Hello::new("public", "", self.database.clone())
+    }
+
+    /// Stop the server (SIGTERM, then kill after 5 s).
+    pub fn stop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            // SAFETY: signalling our own child by pid.
+            unsafe {
+                libc::kill(c.id() as libc::pid_t, libc::SIGTERM);
+            }
+            let deadline = Instant::now() + Duration::from_secs(5);
+            loop {
+                match c.try_wait() {
+                    Ok(Some(_)) => break,
+                    Ok(None) if Instant::now() < deadline => {
+                        std::thread::sleep(Duration::from_millis(20))
+                    }
+                    _ => {
+                        let _ = c.kill();
+                        let _ = c.wait();
+                        break;
+                    }
+                }
+            }
+        }
+        if let Some((rt, h)) = self.in_process.take() {
+            rt.block_on(h.shutdown());
+        }
+    }
+}
+
+impl Drop for ServerUnderTest {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// `planet-server` next to the current executable (target/release when run
+/// from target/release/planet-bench).
+pub fn default_server_bin() -> Result<PathBuf> {
+    let exe = std::env::current_exe()?;
+    let mut dirs = vec![];
+    if let Some(d) = exe.parent() {
+        dirs.push(d.to_path_buf());
+        if let Some(p) = d.parent() {
+            dirs.push(p.to_path_buf()); // target/debug/deps -> target/debug
+        }
+    }
+    for d in dirs {
+        let c = d.join("planet-server");
+        if c.is_file() {
+            return Ok(c);
+        }
+    }
+    bail!(
+        "planet-server binary not found next to {}: run `cargo build --release -p planet-server` \
+         or pass --server-bin (or --server in-process)",
+        exe.display()
+    )
+}
+
+/// QUIC connection options for benchmarks: the client's defaults with a
+/// longer connect timeout (hundreds of handshakes at once on 2 cores).
+pub fn bench_connect_options() -> ConnectOptions {
+    ConnectOptions {
+        connect_timeout: Duration::from_secs(30),
+        ..ConnectOptions::default()
+    }
+}
+
+/// Open `n` connections, at most `parallel` handshakes at a time.
+pub async fn connect_many(
+    srv_addr: SocketAddr,
+    fingerprint: &str,
+    hello: &Hello,
+    n: usize,
+    parallel: usize,
+) -> Result<Vec<Connection>> {
+    let tls = planet_client::tls::pinned(fingerprint)?;
+    let sem = Arc::new(tokio::sync::Semaphore::new(parallel.max(1)));
+    let mut set = tokio::task::JoinSet::new();
+    for i in 0..n {
+        let tls = tls.clone();
+        let hello = hello.clone();
+        let sem = sem.clone();
+        set.spawn(async move {
+            let _permit = sem.acquire_owned().await;
+            let r = Connection::connect_with(
+                srv_addr,
+                "localhost",
+                tls,
+                hello,
+                &bench_connect_options(),
+            )
+            .await
+            .map(|(c, _)| c);
+            (i, r)
+        });
+    }
+    let mut out: Vec<Option<Connection>> = (0..n).map(|_| None).collect();
+    while let Some(r) = set.join_next().await {
+        let (i, r) = r?;
+        out[i] = Some(r.map_err(|e| anyhow!("connection {i}: {e}"))?);
+    }
+    Ok(out.into_iter().flatten().collect())
+}
+
+// ---------------------------------------------------------------- request list
+
+/// One request: a record's file range.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Req {
+    /// File offset.
+    pub offset: u64,
+    /// Size in bytes.
+    pub size: u32,
+}
+
+/// What the request list holds.
+#[derive(Debug, Clone)]
+pub struct RequestList {
+    /// The requests, replayed cyclically.
+    pub reqs: Vec<Req>,
+    /// Records in the database (elevation, colour).
+    pub records: (usize, usize),
+    /// Mean request size.
+    pub mean_size: f64,
+    /// Elevation share actually drawn.
+    pub elevation_share: f64,
+}
+
+/// Every record of `db` and a seeded request list of `len` entries:
+/// `elevation_share` elevation records, the rest colour, each tree's level
+/// drawn uniformly and the record uniformly within its level.
+pub fn request_list(db: &Path, len: usize, seed: u64, elevation_share: f64) -> Result<RequestList> {
+    let (_, recs) =
+        planet_preprocess::db::scan(db).map_err(|e| anyhow!("scan {}: {e}", db.display()))?;
+    // by_level[tree][level] = records
+    let mut by_level: [Vec<Vec<Req>>; 2] = [vec![], vec![]];
+    for r in &recs {
+        let t = match r.tree {
+            Tree::Elevation => 0,
+            Tree::Colour => 1,
+        };
+        let l = r.block.level as usize;
+        if by_level[t].len() <= l {
+            by_level[t].resize(l + 1, vec![]);
+        }
+        by_level[t][l].push(Req {
+            offset: r.offset,
+            size: r.size,
+        });
+    }
+    for t in &mut by_level {
+        t.retain(|l| !l.is_empty());
+    }
+    let counts = (
+        by_level[0].iter().map(Vec::len).sum::<usize>(),
+        by_level[1].iter().map(Vec::len).sum::<usize>(),
+    );
+    if counts.0 + counts.1 == 0 {
+        bail!("{} has no records", db.display());
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut reqs = Vec::with_capacity(len);
+    let mut elev = 0usize;
+    for _ in 0..len.max(1) {
+        let mut t = if rng.random::<f64>() < elevation_share {
+            0
+        } else {
+            1
+        };
+        if by_level[t].is_empty() {
+            t = 1 - t;
+        }
+        if t == 0 {
+            elev += 1;
+        }
+        let levels = &by_level[t];
+        let level = &levels[rng.random_range(0..levels.len())];
+        reqs.push(level[rng.random_range(0..level.len())]);
+    }
+    let mean_size = reqs.iter().map(|r| r.size as f64).sum::<f64>() / reqs.len() as f64;
+    let n = reqs.len();
+    Ok(RequestList {
+        reqs,
+        records: counts,
+        mean_size,
+        elevation_share: elev as f64 / n as f64,
+    })
+}
+
+// ---------------------------------------------------------------- runs
+
+/// Results of one side.
+#[derive(Debug, Clone, Default)]
+pub struct RunResult {
+    /// Label.
+    pub label: String,
+    /// Completed requests.
+    pub requests: u64,
+    /// Body bytes received.
+    pub bytes: u64,
+    /// Failed requests.
+    pub errors: u64,
+    /// First error seen.
+    pub first_error: Option<String>,
+    /// Timed window (first request to last response).
+    pub wall: Duration,
+    /// Latency.
+    pub latency: Latency,
+    /// Server CPU seconds in the window (None when not measurable).
+    pub server_cpu: Option<f64>,
+    /// Connections used.
+    pub connections: usize,
+}
+
+impl RunResult {
+    /// Requests per second.
+    pub fn rps(&self) -> f64 {
+        self.requests as f64 / self.wall.as_secs_f64().max(1e-9)
+    }
+    /// Megabytes (10^6) per second.
+    pub fn mbps(&self) -> f64 {
+        self.bytes as f64 / 1e6 / self.wall.as_secs_f64().max(1e-9)
+    }
+    fn print(&self) {
+        let cpu = match self.server_cpu {
+            Some(c) => format!(
+                "{:.0} % of one core ({:.1} µs CPU/request)",
+                100.0 * c / self.wall.as_secs_f64().max(1e-9),
+                1e6 * c / self.requests.max(1) as f64
+            ),
+            None => "n/a (in-process)".into(),
+        };
+        println!(
+            "{:<8} {:>5} conns  {:>9.0} req/s  {:>8.1} MB/s  p50 {}  p90 {}  p99 {}  max {}  errors {}  server CPU {}",
+            self.label,
+            self.connections,
+            self.rps(),
+            self.mbps(),
+            ms(self.latency.p50),
+            ms(self.latency.p90),
+            ms(self.latency.p99),
+            ms(self.latency.max),
+            self.errors,
+            cpu
+        );
+        if let Some(e) = &self.first_error {
+            println!("         first error: {e}");
+        }
+    }
+}
+
+#[derive(Default)]
+struct LoopStats {
+    lat_us: Vec<u32>,
+    bytes: u64,
+    errors: u64,
+    first_error: Option<String>,
+}
+
+impl LoopStats {
+    fn merge(&mut self, o: LoopStats) {
+        self.lat_us.extend(o.lat_us);
+        self.bytes += o.bytes;
+        self.errors += o.errors;
+        if self.first_error.is_none() {
+            self.first_error = o.first_error;
+        }
+    }
+    fn error(&mut self, e: String) {
+        self.errors += 1;
+        if self.first_error.is_none() {
+            self.first_error = Some(e);
+        }
+    }
+}
+
+/// Shared request cursor: request `i` is `list[i % len]`; stops at `limit`
+/// or at the deadline.
+struct Cursor {
+    list: Arc<Vec<Req>>,
+    next: AtomicUsize,
+    limit: usize,
+    deadline: Instant,
+}
+
+impl Cursor {
+    fn take(&self) -> Option<(usize, Req)> {
+        if Instant::now() >= self.deadline {
+            return None;
+        }
+        let i = self.next.fetch_add(1, Ordering::Relaxed);
+        if i >= self.limit {
+            return None;
+        }
+        Some((i, self.list[i % self.list.len()]))
+    }
+}
+
+fn new_cursor(list: &Arc<Vec<Req>>, args: &ServerArgs, start: Instant) -> Arc<Cursor> {
+    let (limit, deadline) = match args.requests {
+        Some(n) => (n, start + Duration::from_secs(24 * 3600)),
+        None => (usize::MAX, start + Duration::from_secs_f64(args.seconds)),
+    };
+    Arc::new(Cursor {
+        list: list.clone(),
+        next: AtomicUsize::new(0),
+        limit,
+        deadline,
+    })
+}
+
+async fn run_quic(
+    srv: &ServerUnderTest,
+    list: &Arc<Vec<Req>>,
+    args: &ServerArgs,
+) -> Result<RunResult> {
+    let conns = connect_many(srv.addr, &srv.fingerprint, &srv.hello(), args.clients, 64).await?;
+    let pids: Vec<u32> = srv.pid().into_iter().collect();
+    let cpu0 = cpu_seconds_of(&pids);
+    let start = Instant::now();
+    let cursor = new_cursor(list, args, start);
+    let mut set = tokio::task::JoinSet::new();
+    for c in &conns {
+        for _ in 0..args.concurrency.max(1) {
+            let c = c.clone();
+            let cursor = cursor.clone();
+            set.spawn(async move {
+                let mut st = LoopStats::default();
+                while let Some((i, r)) = cursor.take() {
+                    let t0 = Instant::now();
+                    match c.fetch(i as u64, r.offset, r.size).await {
+                        Ok(body) if body.len() == r.size as usize => {
+                            st.lat_us
+                                .push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
+                            st.bytes += body.len() as u64;
+                        }
+                        Ok(body) => st.error(format!("short body {} of {}", body.len(), r.size)),
+                        Err(e) => st.error(e.to_string()),
+                    }
+                }
+                st
+            });
+        }
+    }
+    let mut all = LoopStats::default();
+    while let Some(r) = set.join_next().await {
+        all.merge(r?);
+    }
+    let wall = start.elapsed();
+    let cpu1 = cpu_seconds_of(&pids);
+    for c in &conns {
+        c.close();
+    }
+    Ok(RunResult {
+        label: "QUIC".into(),
+        requests: all.lat_us.len() as u64,
+        bytes: all.bytes,
+        errors: all.errors,
+        first_error: all.first_error,
+        wall,
+        latency: latency(&mut all.lat_us),
+        server_cpu: srv.pid().map(|_| cpu1 - cpu0),
+        connections: conns.len(),
+    })
+}
+
+// ---------------------------------------------------------------- nginx
+
+/// A running nginx serving one file at `/db` over TLS.
+pub struct Nginx {
+    /// Its address.
+    pub addr: SocketAddr,
+    /// Certificate (DER) to trust.
+    pub cert_der: Vec<u8>,
+    child: Child,
+    _prefix: tempfile::TempDir,
+}
+
+impl Nginx {
+    /// Start `bin` serving `db` at `https://localhost:PORT/db`.
+    pub fn start(bin: &Path, db: &Path, workers: usize) -> Result<Nginx> {
+        let prefix = tempfile::Builder::new()
+            .prefix("planet-bench-nginx")
+            .tempdir()?;
+        let p = prefix.path();
+        std::fs::create_dir_all(p.join("www"))?;
+        std::fs::create_dir_all(p.join("tmp"))?;
+        let db = std::fs::canonicalize(db)?;
+        std::os::unix::fs::symlink(&db, p.join("www/db"))?;
+        let cert =
+            rcgen::generate_simple_self_signed(vec!["localhost".into(), "127.0.0.1".into()])?;
+        std::fs::write(p.join("cert.pem"), cert.cert.pem())?;
+        std::fs::write(p.join("key.pem"), cert.signing_key.serialize_pem())?;
+        let port = TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+        let addr: SocketAddr = ([127, 0, 0, 1], port).into();
+        // Running as root, workers would switch to `nobody`; keep them as the
+        // current user so they can read the file wherever it is.
+        let user = if unsafe { libc::geteuid() } == 0 {
+            "user root root;"
+        } else {
+            ""
+        };
+        let conf = format!(
+            r#"# written by planet-bench server
+{user}
+daemon off;
+master_process on;
+worker_processes {workers};
+worker_rlimit_nofile 65536;
+error_log {p}/error.log warn;
+pid {p}/nginx.pid;
+events {{ worker_connections 16384; }}
+http {{
+    access_log off;
+    default_type application/octet-stream;
+    sendfile on;
+    tcp_nopush on;
+    tcp_nodelay on;
+    keepalive_timeout 300s;
+    keepalive_requests 100000000;
+    http2_max_concurrent_streams 128;
+    client_body_temp_path {p}/tmp/body;
+    proxy_temp_path {p}/tmp/proxy;
+    fastcgi_temp_path {p}/tmp/fastcgi;
+    uwsgi_temp_path {p}/tmp/uwsgi;
+    scgi_temp_path {p}/tmp/scgi;
+    server {{
+        listen 127.0.0.1:{port} ssl http2;
+        server_name localhost;
+        ssl_certificate {p}/cert.pem;
+        ssl_certificate_key {p}/key.pem;
+        ssl_protocols TLSv1.3;
+        root {p}/www;
+        disable_symlinks off;
+        location / {{ }}
+    }}
+}}
+"#,
+            p = p.display()
+        );
+        std::fs::write(p.join("nginx.conf"), conf)?;
+        let mut child = Command::new(bin)
+            .arg("-p")
+            .arg(p)
+            .arg("-e")
+            .arg(p.join("error.log"))
+            .arg("-c")
+            .arg(p.join("nginx.conf"))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .with_context(|| format!("cannot start {}", bin.display()))?;
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            if std::net::TcpStream::connect(addr).is_ok() {
+                break;
+            }
+            if let Ok(Some(st)) = child.try_wait() {
+                let log = std::fs::read_to_string(p.join("error.log")).unwrap_or_default();
+                bail!("nginx exited ({st}): {log}");
+            }
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                bail!("nginx did not listen on {addr}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Ok(Nginx {
+            addr,
+            cert_der: cert.cert.der().to_vec(),
+            child,
+            _prefix: prefix,
+        })
+    }
+
+    /// nginx's pids (master and workers).
+    pub fn pids(&self) -> Vec<u32> {
+        process_tree(self.child.id())
+    }
+}
+
+impl Drop for Nginx {
+    fn drop(&mut self) {
+        // SIGQUIT: graceful stop of master and workers.
+        // SAFETY: signalling our own child by pid.
+        unsafe {
+            libc::kill(self.child.id() as libc::pid_t, libc::SIGQUIT);
+        }
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        unsafe {
+            libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM);
+        }
+        let _ = self.child.wait();
+    }
+}
+
+fn https_client_config(cert_der: &[u8], alpn: &[u8]) -> Result<Arc<rustls::ClientConfig>> {
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut roots = rustls::RootCertStore::empty();
+    roots.add(rustls::pki_types::CertificateDer::from(cert_der.to_vec()))?;
+    let mut cfg = rustls::ClientConfig::builder_with_provider(provider)
+        .with_protocol_versions(&[&rustls::version::TLS13])?
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    cfg.alpn_protocols = vec![alpn.to_vec()];
+    Ok(Arc::new(cfg))
+}
+
+type TlsStream = tokio_rustls::client::TlsStream<tokio::net::TcpStream>;
+
+async fn tls_connect(addr: SocketAddr, tls: &tokio_rustls::TlsConnector) -> Result<TlsStream> {
+    let tcp = tokio::net::TcpStream::connect(addr).await?;
+    tcp.set_nodelay(true)?;
+    let name = rustls::pki_types::ServerName::try_from("localhost")?;
+    Ok(tls.connect(name, tcp).await?)
+}
+
+fn range_request(uri: &str, r: Req) -> Result<hyper::Request<http_body_util::Empty<bytes::Bytes>>> {
+    // HTTP/2 takes the authority from the absolute URI (a Host header as
+    // well makes nginx answer 400); HTTP/1.1 needs the Host header.
+    let mut b = hyper::Request::get(uri);
+    if uri.starts_with('/') {
+        b = b.header(hyper::header::HOST, "localhost");
+    }
+    Ok(b.header(
+        hyper::header::RANGE,
+        format!("bytes={}-{}", r.offset, r.offset + r.size as u64 - 1),
+    )
+    .body(http_body_util::Empty::new())?)
+}
+
+async fn check_response(
+    resp: hyper::Response<hyper::body::Incoming>,
+    r: Req,
+) -> Result<u64, String> {
+    use http_body_util::BodyExt;
+    let status = resp.status();
+    let body = resp
+        .into_body()
+        .collect()
+        .await
+        .map_err(|e| e.to_string())?
+        .to_bytes();
+    if status != hyper::StatusCode::PARTIAL_CONTENT {
+        return Err(format!("HTTP {status}"));
+    }
+    if body.len() != r.size as usize {
+        return Err(format!("body {} bytes, expected {}", body.len(), r.size));
+    }
+    Ok(body.len() as u64)
+}
+
+async fn run_nginx(
+    ng: &Nginx,
+    list: &Arc<Vec<Req>>,
+    args: &ServerArgs,
+    h2: bool,
+) -> Result<RunResult> {
+    let alpn: &[u8] = if h2 { b"h2" } else { b"http/1.1" };
+    let tls = tokio_rustls::TlsConnector::from(https_client_config(&ng.cert_der, alpn)?);
+    let conc = args.concurrency.max(1);
+    let n_conns = if h2 {
+        args.clients
+    } else {
+        args.clients * conc
+    };
+    let sem = Arc::new(tokio::sync::Semaphore::new(64));
+    // Connect phase (not timed).
+    let mut set = tokio::task::JoinSet::new();
+    for _ in 0..n_conns {
+        let tls = tls.clone();
+        let addr = ng.addr;
+        let sem = sem.clone();
+        set.spawn(async move {
+            let _p = sem.acquire_owned().await;
+            let io = hyper_util::rt::TokioIo::new(tls_connect(addr, &tls).await?);
+            if h2 {
+                let (send, conn) =
+                    hyper::client::conn::http2::handshake(hyper_util::rt::TokioExecutor::new(), io)
+                        .await?;
+                tokio::spawn(conn);
+                Ok::<_, anyhow::Error>(Sender::H2(send))
+            } else {
+                let (send, conn) = hyper::client::conn::http1::handshake(io).await?;
+                tokio::spawn(conn);
+                Ok(Sender::H1(send))
+            }
+        });
+    }
+    let mut senders = vec![];
+    while let Some(r) = set.join_next().await {
+        senders.push(r??);
+    }
+    let pids = ng.pids();
+    let cpu0 = cpu_seconds_of(&pids);
+    let start = Instant::now();
+    let cursor = new_cursor(list, args, start);
+    let uri: Arc<str> = if h2 {
+        format!("https://localhost:{}/db", ng.addr.port()).into()
+    } else {
+        "/db".into()
+    };
+    let mut set = tokio::task::JoinSet::new();
+    let mut loops: Vec<Sender> = vec![];
+    for s in senders {
+        match s {
+            Sender::H2(h) => loops.extend((0..conc).map(|_| Sender::H2(h.clone()))),
+            h1 => loops.push(h1),
+        }
+    }
+    for s in loops {
+        {
+            let mut s = Some(s);
+            let cursor = cursor.clone();
+            let uri = uri.clone();
+            set.spawn(async move {
+                let mut st = LoopStats::default();
+                while let Some((_, r)) = cursor.take() {
+                    let t0 = Instant::now();
+                    let req = match range_request(&uri, r) {
+                        Ok(q) => q,
+                        Err(e) => {
+                            st.error(e.to_string());
+                            continue;
+                        }
+                    };
+                    let resp = match &mut s {
+                        Some(Sender::H1(h)) => {
+                            if let Err(e) = h.ready().await {
+                                st.error(e.to_string());
+                                break;
+                            }
+                            h.send_request(req).await
+                        }
+                        Some(Sender::H2(h)) => h.send_request(req).await,
+                        None => break,
+                    };
+                    match resp {
+                        Ok(resp) => match check_response(resp, r).await {
+                            Ok(n) => {
+                                st.lat_us
+                                    .push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
+                                st.bytes += n;
+                            }
+                            Err(e) => st.error(e),
+                        },
+                        Err(e) => st.error(e.to_string()),
+                    }
+                }
+                st
+            });
+        }
+    }
+    let mut all = LoopStats::default();
+    while let Some(r) = set.join_next().await {
+        all.merge(r?);
+    }
+    let wall = start.elapsed();
+    let cpu1 = cpu_seconds_of(&pids);
+    Ok(RunResult {
+        label: if h2 { "nginx h2" } else { "nginx h1" }.into(),
+        requests: all.lat_us.len() as u64,
+        bytes: all.bytes,
+        errors: all.errors,
+        first_error: all.first_error,
+        wall,
+        latency: latency(&mut all.lat_us),
+        server_cpu: Some(cpu1 - cpu0),
+        connections: n_conns,
+    })
+}
+
+enum Sender {
+    H1(hyper::client::conn::http1::SendRequest<http_body_util::Empty<bytes::Bytes>>),
+    H2(hyper::client::conn::http2::SendRequest<http_body_util::Empty<bytes::Bytes>>),
+}
+
+/// What a `server` run measured.
+#[derive(Debug, Clone)]
+pub struct ServerReport {
+    /// The QUIC side.
+    pub quic: RunResult,
+    /// The nginx sides.
+    pub nginx: Vec<RunResult>,
+}
+
+/// `planet-bench server`.
+pub fn run(args: ServerArgs) -> Result<()> {
+    let report = bench(&args)?;
+    let mut failed = report.quic.errors > 0;
+    for n in &report.nginx {
+        failed |= n.errors > 0;
+    }
+    if failed {
+        bail!("requests failed (see the errors above)");
+    }
+    Ok(())
+}
+
+/// Runs the benchmark, prints and returns the figures.
+pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
+    planet_client::tls::install_crypto_provider();
+    let nofile = raise_nofile_limit();
+    let db = resolve_db(&args.db)?;
+    let list = request_list(&db, args.list_len, args.seed, args.elevation_share)?;
+    let file_size = std::fs::metadata(&db)?.len();
+    println!(
+        "database {} ({:.1} MB, {} elevation + {} colour records); request list: {} entries, seed {}, \
+         {:.0} % elevation, mean {:.1} kB",
+        db.display(),
+        file_size as f64 / 1e6,
+        list.records.0,
+        list.records.1,
+        list.reqs.len(),
+        args.seed,
+        100.0 * list.elevation_share,
+        list.mean_size / 1e3
+    );
+    let cpus = std::thread::available_parallelism().map_or(2, |n| n.get());
+    println!(
+        "{} clients x {} concurrent requests, {}; {} CPUs, load average {} (before), open files {}",
+        args.clients,
+        args.concurrency,
+        match args.requests {
+            Some(n) => format!("{n} requests per side"),
+            None => format!("{} s per side", args.seconds),
+        },
+        cpus,
+        loadavg(),
+        nofile
+    );
+    let threads = args.client_threads.unwrap_or(cpus);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(threads.max(1))
+        .thread_name("bench-client")
+        .enable_all()
+        .build()?;
+    let reqs = Arc::new(list.reqs.clone());
+
+    let mut srv = ServerUnderTest::start(args.server, &db, args.server_bin.as_deref())?;
+    let quic = rt.block_on(run_quic(&srv, &reqs, args))?;
+    srv.stop();
+    quic.print();
+
+    let mut nginx = vec![];
+    if args.nginx {
+        let workers = args.nginx_workers.unwrap_or(cpus);
+        let ng = Nginx::start(&args.nginx_bin, &db, workers)?;
+        let modes: &[bool] = match args.http {
+            HttpMode::H1 => &[false],
+            HttpMode::H2 => &[true],
+            HttpMode::Both => &[false, true],
+        };
+        for &h2 in modes {
+            let r = rt.block_on(run_nginx(&ng, &reqs, args, h2))?;
+            r.print();
+            nginx.push(r);
+        }
+        drop(ng);
+        for n in &nginx {
+            println!(
+                "QUIC / {}: requests/s x{:.2}, MB/s x{:.2}, p99 x{:.2} (lower is better for p99)",
+                n.label,
+                quic.rps() / n.rps().max(1e-9),
+                quic.mbps() / n.mbps().max(1e-9),
+                quic.latency.p99 as f64 / (n.latency.p99.max(1)) as f64
+            );
+        }
+    }
+    println!("load average {} (after)", loadavg());
+    rt.shutdown_timeout(Duration::from_secs(2));
+    Ok(ServerReport { quic, nginx })
+}
+
+#[cfg(test)]
+pub(crate) mod tests_support {
+    use std::path::PathBuf;
+
+    /// A 3-level procedural database, built once per test binary.
+    pub(crate) fn tiny_db() -> PathBuf {
+        static DB: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+        DB.get_or_init(|| {
+            let dir =
+                std::env::temp_dir().join(format!("planet-bench-test-{}", std::process::id()));
+            std::fs::create_dir_all(&dir).unwrap();
+            let path = dir.join("tiny.planetdb");
+            let mut o = planet_preprocess::default_procedural_options();
+            o.levels = 3;
+            planet_preprocess::build_procedural(&o, &path).unwrap();
+            path
+        })
+        .clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::tests_support::tiny_db;
+    use super::*;
+
+    #[test]
+    fn request_list_is_seeded_and_valid() {
+        let db = tiny_db();
+        let a = request_list(&db, 1000, 7, 0.75).unwrap();
+        let b = request_list(&db, 1000, 7, 0.75).unwrap();
+        assert_eq!(a.reqs, b.reqs);
+        assert!(a.records.0 > 0 && a.records.1 > 0);
+        assert!((0.6..0.9).contains(&a.elevation_share));
+        let bytes = std::fs::read(&db).unwrap();
+        for r in a.reqs.iter().take(200) {
+            let rec = &bytes[r.offset as usize..(r.offset + r.size as u64) as usize];
+            planet_core::format::parse_record(rec, Some(bytes.len() as u64)).unwrap();
+        }
+    }
+
+    #[test]
+    fn percentiles() {
+        let mut v: Vec<u32> = (1..=100).rev().collect();
+        let l = latency(&mut v);
+        assert_eq!((l.p50, l.p99, l.max), (51, 100, 100));
+    }
+
+    #[test]
+    fn smoke_server_bench_tiny() {
+        let args = ServerArgs {
+            db: Some(tiny_db()),
+            clients: 5,
+            concurrency: 2,
+            seconds: 2.0,
+            list_len: 1000,
+            server: ServerMode::InProcess,
+            client_threads: Some(2),
+            ..ServerArgs::default()
+        };
+        let r = bench(&args).unwrap();
+        assert_eq!(r.quic.errors, 0, "{:?}", r.quic.first_error);
+        assert!(r.quic.requests > 0 && r.quic.bytes > 0);
+        assert_eq!(r.quic.connections, 5);
+    }
+}
