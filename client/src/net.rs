@@ -252,8 +252,7 @@ impl Connection {
         } else {
             (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
         };
-        let mut endpoint =
-            quinn::Endpoint::client(bind).map_err(|e| NetError::Connect(e.to_string()))?;
+        let mut endpoint = client_endpoint(bind).map_err(|e| NetError::Connect(e.to_string()))?;
         let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls)
             .map_err(|e| NetError::Connect(e.to_string()))?;
         let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
@@ -781,4 +780,25 @@ async fn serve_session(
     }
     tasks.shutdown().await;
     user_closed
+}
+
+/// A client endpoint on a UDP socket with 4 MiB buffers (capped by the
+/// kernel's `rmem_max`/`wmem_max`): with the default 208 KiB, bursts of
+/// responses overflowed the receive buffer on loaded machines and QUIC stalled
+/// on probe timeouts. The server does the same in `planet_server::udp`.
+fn client_endpoint(bind: SocketAddr) -> std::io::Result<quinn::Endpoint> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
+    let socket = Socket::new(Domain::for_address(bind), Type::DGRAM, Some(Protocol::UDP))?;
+    let _ = socket.set_recv_buffer_size(SOCKET_BUFFER);
+    let _ = socket.set_send_buffer_size(SOCKET_BUFFER);
+    socket.bind(&bind.into())?;
+    let runtime = quinn::default_runtime()
+        .ok_or_else(|| std::io::Error::other("no async runtime for the QUIC endpoint"))?;
+    quinn::Endpoint::new(
+        quinn::EndpointConfig::default(),
+        None,
+        socket.into(),
+        runtime,
+    )
 }

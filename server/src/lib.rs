@@ -18,6 +18,7 @@ pub mod db;
 pub mod limit;
 pub mod metrics;
 pub mod tls;
+pub mod udp;
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -205,7 +206,7 @@ impl Server {
         let mut server_cfg = quinn::ServerConfig::with_crypto(Arc::new(quic_crypto));
         server_cfg.transport_config(Arc::new(transport_config(&config)?));
 
-        let endpoint = quinn::Endpoint::server(server_cfg, config.listen).map_err(|source| {
+        let endpoint = udp::server_endpoint(server_cfg, config.listen).map_err(|source| {
             ServerError::Bind {
                 what: "QUIC",
                 addr: config.listen,
