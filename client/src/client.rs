@@ -27,11 +27,12 @@ use crate::quality::{QualityConfig, QualityController};
 use crate::request_queue::{select_tree_ops, OpKind, QueueConfig, RequestQueue, TreeOp};
 use crate::selection::{select, DrawBlock};
 use crate::stats::{FrameStats, Totals};
-use crate::tree::{decode_record, Decoded, FirstLod, HeaderError, PartialTree, RefineError};
+use crate::tree::{
+    decode_record, Decoded, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
+};
 use crate::visibility::{Camera, View};
 use planet_core::format::{ChildRef, Header, Tree};
 use planet_core::BlockId;
-use std::collections::HashSet;
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -143,7 +144,7 @@ pub struct Client {
     r_min: f64,
     r_max: f64,
     pending_ops: Vec<TreeOp>,
-    decoding: HashSet<(Tree, BlockId)>,
+    decoding: FastSet<(Tree, BlockId)>,
     jobs: Option<Sender<Job>>,
     done_rx: Receiver<Done>,
     done_tx: Sender<Done>,
@@ -203,7 +204,7 @@ impl Client {
             r_min,
             r_max,
             pending_ops: vec![],
-            decoding: HashSet::new(),
+            decoding: FastSet::default(),
             jobs,
             done_rx,
             done_tx,

@@ -20,9 +20,9 @@
 //! the most important triggered operations, up to a capacity per frame, are
 //! executed at the start of the next frame.
 
+use crate::tree::FastMap;
 use planet_core::format::{ChildRef, Tree};
 use planet_core::BlockId;
-use std::collections::HashMap;
 
 /// A triggered load (refine) request.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -90,8 +90,8 @@ pub struct Selected {
 pub struct RequestQueue {
     config: QueueConfig,
     next_id: u64,
-    in_flight: HashMap<u64, InFlight>,
-    by_block: HashMap<(Tree, BlockId), u64>,
+    in_flight: FastMap<u64, InFlight>,
+    by_block: FastMap<(Tree, BlockId), u64>,
 }
 
 impl RequestQueue {
@@ -100,8 +100,8 @@ impl RequestQueue {
         RequestQueue {
             config,
             next_id: 1,
-            in_flight: HashMap::new(),
-            by_block: HashMap::new(),
+            in_flight: FastMap::default(),
+            by_block: FastMap::default(),
         }
     }
 
@@ -152,7 +152,7 @@ impl RequestQueue {
 
     /// One frame's selection from this frame's triggered requests.
     pub fn select(&mut self, triggered: Vec<LoadRequest>) -> Selected {
-        let mut best: HashMap<(Tree, BlockId), LoadRequest> = HashMap::new();
+        let mut best: FastMap<(Tree, BlockId), LoadRequest> = FastMap::default();
         for r in triggered {
             if !r.importance.is_finite() {
                 continue;
@@ -263,7 +263,7 @@ pub struct TreeOp {
 /// The split/merge queue: the `capacity` most important distinct triggered
 /// operations (a block gets at most one), most important first.
 pub fn select_tree_ops(triggered: Vec<TreeOp>, capacity: usize) -> Vec<TreeOp> {
-    let mut best: HashMap<(Tree, BlockId), TreeOp> = HashMap::new();
+    let mut best: FastMap<(Tree, BlockId), TreeOp> = FastMap::default();
     for op in triggered {
         if !op.importance.is_finite() {
             continue;

@@ -29,11 +29,10 @@ use crate::importance::{
     split_importance, wants_merge, wants_split,
 };
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
-use crate::tree::{Blocked, LinkedTree, PartialTree};
+use crate::tree::{Blocked, FastMap, PartialTree};
 use crate::visibility::View;
 use planet_core::format::Tree;
 use planet_core::{BlockId, Edge, Face};
-use std::collections::HashMap;
 
 /// A neighbour's LOD across one edge of a drawn block.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -100,19 +99,28 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
     };
     let et = tree.elevation();
     let ew = et.width as f64;
-    // Elevation: (visible, distance, radius) per node, for colour and draws.
-    let mut info: HashMap<BlockId, (bool, f64)> = HashMap::with_capacity(et.len());
-    let mut drawn: HashMap<BlockId, u8> = HashMap::new();
+    // Elevation, per node: visibility and this frame's state (split, or
+    // leaf with its drawn LOD when visible), for colour and neighbours.
+    let mut info: FastMap<BlockId, NodeFrame> = FastMap::default();
+    info.reserve(et.len());
+    let mut stack: Vec<(BlockId, bool)> = Vec::with_capacity(64);
     for f in Face::ALL {
-        let mut stack = vec![(BlockId::root(f), true)];
+        stack.push((BlockId::root(f), true));
         while let Some((id, parent_visible)) = stack.pop() {
             let Some(n) = et.get(&id) else { continue };
             let Some(b) = n.bounds.as_ref() else { continue };
             let visible = parent_visible && view.is_visible(b);
             let dist = block_distance(view.camera.eye, b.centre, b.radius);
             let imp = importance(dist, b.radius, ew, qf);
-            info.insert(id, (visible, imp));
             if n.split {
+                info.insert(
+                    id,
+                    NodeFrame {
+                        visible,
+                        split: true,
+                        drawn: None,
+                    },
+                );
                 if wants_merge(imp) && tree.can_merge(Tree::Elevation, &id).is_ok() {
                     cx.out.ops.push(TreeOp {
                         kind: OpKind::Merge,
@@ -124,12 +132,19 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
                 stack.extend(id.children().map(|c| (c, visible)));
                 continue;
             }
+            let sel = selected_lod(imp);
+            let lod = sel.max(n.lod);
+            info.insert(
+                id,
+                NodeFrame {
+                    visible,
+                    split: false,
+                    drawn: visible.then_some(lod),
+                },
+            );
             if !visible {
                 continue;
             }
-            let sel = selected_lod(imp);
-            let lod = sel.max(n.lod);
-            drawn.insert(id, lod);
             if sel < n.lod {
                 cx.load(Tree::Elevation, id, refine_importance(n.lod, imp), false);
             } else if wants_split(imp) && n.can_split_data().is_ok() {
@@ -161,17 +176,17 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
         }
     }
     // Colour tree.
-    let mut colour_drawn: HashMap<BlockId, u8> = HashMap::new();
+    let mut colour_drawn: FastMap<BlockId, u8> = FastMap::default();
     if let Some(ct) = tree.colour() {
         let cw = ct.width as f64;
         for f in Face::ALL {
-            let mut stack = vec![BlockId::root(f)];
-            while let Some(id) = stack.pop() {
+            stack.push((BlockId::root(f), true));
+            while let Some((id, _)) = stack.pop() {
                 let Some(n) = ct.get(&id) else { continue };
                 let Some(b) = et.get(&id).and_then(|e| e.bounds.as_ref()) else {
                     continue;
                 };
-                let visible = info.get(&id).is_some_and(|i| i.0);
+                let visible = info.get(&id).is_some_and(|i| i.visible);
                 let dist = block_distance(view.camera.eye, b.centre, b.radius);
                 let imp = importance(dist, b.radius, cw, qf);
                 if n.split {
@@ -183,7 +198,7 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
                             importance: imp,
                         });
                     }
-                    stack.extend(id.children());
+                    stack.extend(id.children().map(|c| (c, true)));
                     continue;
                 }
                 let sel = selected_lod(imp);
@@ -208,7 +223,7 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
     let colour = tree.colour();
     for d in cx.out.draw.iter_mut() {
         for (k, e) in Edge::ALL.iter().enumerate() {
-            d.neighbours[k] = neighbour_lod(et, &drawn, &d.block, d.lod, *e);
+            d.neighbours[k] = neighbour_lod(&info, &d.block, d.lod, *e);
         }
         d.colour = colour
             .and_then(|c| c.covering(&d.block))
@@ -220,22 +235,38 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
     cx.out
 }
 
+/// One elevation node's state in this frame's traversal.
+#[derive(Clone, Copy)]
+struct NodeFrame {
+    visible: bool,
+    split: bool,
+    /// Drawn LOD (visible leaves).
+    drawn: Option<u8>,
+}
+
+/// The neighbour across `edge`: the deepest traversed node covering the
+/// same-level neighbour (as [`crate::tree::LinkedTree::neighbour`], every node being
+/// traversed), looked up in the frame's map (one map for existence,
+/// split state and drawn LOD).
 fn neighbour_lod(
-    et: &LinkedTree,
-    drawn: &HashMap<BlockId, u8>,
+    info: &FastMap<BlockId, NodeFrame>,
     id: &BlockId,
     lod: u8,
     edge: Edge,
 ) -> Option<NeighbourLod> {
-    let nb = et.neighbour(id, edge)?;
+    let same = id.neighbour(edge).0;
+    let (nid, nb) = (0..=same.level).rev().find_map(|l| {
+        let a = same.ancestor(l);
+        info.get(&a).map(|n| (a, n))
+    })?;
     if nb.split {
         return None;
     }
-    let nlod = *drawn.get(&nb.id)?;
+    let nlod = nb.drawn?;
     Some(NeighbourLod {
-        block: nb.id,
+        block: nid,
         lod: nlod,
-        lod_diff: (nlod as i32 - lod as i32) + (id.level as i32 - nb.id.level as i32),
+        lod_diff: (nlod as i32 - lod as i32) + (id.level as i32 - nid.level as i32),
     })
 }
 

@@ -274,6 +274,10 @@ pub struct View {
     /// Radius of the occluding min sphere.
     pub r_min: f64,
     planes: [Plane; 6],
+    /// `|n|` of each plane (sphere pre-tests).
+    plane_norms: [f64; 6],
+    /// `cos` and `sin` of the cone half-angle (cone pre-test).
+    cone_cos_sin: (f64, f64),
     forward: DVec3,
     eye_len: f64,
     cos_beta: f64,
@@ -336,6 +340,8 @@ impl View {
             r_max.max(r_min),
         );
         View {
+            plane_norms: planes.map(|p| p.n.length()),
+            cone_cos_sin: (cone_half_angle.cos(), cone_half_angle.sin()),
             cone_half_angle,
             planet_in_view,
             camera: *camera,
@@ -417,13 +423,33 @@ impl View {
         self.planet_in_view
             && self.sphere_in_cone(b.centre, b.sphere_radius)
             && self.box_in_frustum(b.min, b.max)
-            && self.hull_in_frustum(&b.points)
+            && self.hull_in_frustum_sphere(&b.points, b.centre, b.sphere_radius)
             && !self.behind_horizon(b)
     }
 
     /// Whether the sphere may meet the frustum's bounding cone (apex at the
     /// eye, axis forward, half-angle of the frustum's corner ray).
     pub fn sphere_in_cone(&self, centre: DVec3, radius: f64) -> bool {
+        // Trig-free pre-test; only the uncertain band takes the exact form
+        // below (so the answer is the same).
+        let d = centre - self.camera.eye;
+        let d2 = d.length_squared();
+        if d2.is_finite() && radius >= 0.0 && d2 > radius * radius * (1.0 + 1e-6) {
+            let dist = d2.sqrt();
+            let (ch, sh) = self.cone_cos_sin;
+            let ss = radius / dist;
+            let cs = (1.0 - ss * ss).max(0.0).sqrt();
+            let along = d.dot(self.forward) / dist;
+            // cos(half + spread): half < π/2 (an atan) and spread ≤ π/2,
+            // so the sum is in [0, π) where cos is decreasing.
+            let sum_cos = ch * cs - sh * ss;
+            if along > sum_cos + 1e-6 {
+                return true;
+            }
+            if along < sum_cos - 1e-6 {
+                return false;
+            }
+        }
         cone_meets_sphere(
             self.camera.eye,
             self.forward,
@@ -440,6 +466,28 @@ impl View {
         self.planes
             .iter()
             .all(|p| points.iter().any(|q| p.n.dot(*q - eye) + p.d >= 0.0))
+    }
+
+    /// [`View::hull_in_frustum`] for points inside the sphere
+    /// (`centre`, `radius`): planes that the sphere lies clearly inside or
+    /// outside of are decided without the points (same answer).
+    fn hull_in_frustum_sphere(&self, points: &[DVec3], centre: DVec3, radius: f64) -> bool {
+        if points.is_empty() {
+            return self.hull_in_frustum(points);
+        }
+        let eye = self.camera.eye;
+        let c = centre - eye;
+        self.planes.iter().zip(self.plane_norms).all(|(p, len)| {
+            let s = p.n.dot(c) + p.d;
+            let m = radius * len * (1.0 + 1e-9) + 1e-6 * (1.0 + len);
+            if s >= m {
+                true
+            } else if s <= -m {
+                false
+            } else {
+                points.iter().any(|q| p.n.dot(*q - eye) + p.d >= 0.0)
+            }
+        })
     }
 
     /// Depth of a point along the view direction.
