@@ -55,7 +55,8 @@ pub fn horizon_planes(
     let r_max = r_max.max(r_min);
     let fallback = ClipPlanes {
         near: MIN_NEAR,
-        far: (vo + r_max).max(MIN_NEAR * 2.0) * 1.001,
+        // `min(f64::MAX)`: an eye at 1e300 m would overflow to +inf.
+        far: ((vo + r_max).max(MIN_NEAR * 2.0) * 1.001).min(f64::MAX),
     };
     if !(vo.is_finite() && dl.is_finite() && dl > 0.0 && r_max.is_finite()) || vo == 0.0 {
         return fallback;

@@ -28,6 +28,9 @@ pub struct Vertex {
     pub _pad: f32,
 }
 
+/// Largest altitude magnitude (metres) a vertex is built with.
+pub const MAX_ABS_ALTITUDE: f64 = 1.0e9;
+
 static NEXT_VERSION: AtomicU64 = AtomicU64::new(1);
 
 /// The vertex array of one block, both LODs in one `(W+1)²` array.
@@ -85,7 +88,11 @@ impl BlockMesh {
         let side = w + 1;
         assert_eq!(grid.len(), side * side, "grid must be (W+1)²");
         assert!(w >= 4 && w.is_multiple_of(2));
-        let alt = |i: usize, j: usize| grid[j * side + i] as f64 * scale + offset;
+        // Clamped so that a hostile header scale (any finite f32 passes
+        // `format.rs`) times an int16 extreme cannot overflow the f32 casts.
+        let alt = |i: usize, j: usize| {
+            (grid[j * side + i] as f64 * scale + offset).clamp(-MAX_ABS_ALTITUDE, MAX_ABS_ALTITUDE)
+        };
         // Altitude range over the LOD 1 samples.
         let (mut lo, mut hi) = (f64::MAX, f64::MIN);
         for j in (0..side).step_by(2) {
@@ -125,7 +132,9 @@ impl BlockMesh {
                 let normal = if nl > 0.0 && nl.is_finite() {
                     [n[0] / nl, n[1] / nl, n[2] / nl]
                 } else {
-                    normalize(p)
+                    // The sample's direction: `normalize(p)` is NaN when the
+                    // point is at the planet centre (altitude = −radius).
+                    sample_position(&Datum::Sphere { radius: 1.0 }, id, w, i, j, 0.0)
                 };
                 vertices.push(Vertex {
                     pos: [rel[0] as f32, rel[1] as f32, rel[2] as f32],

@@ -1,0 +1,237 @@
+//! `planet-view render`: fly a trajectory offscreen, write PNG frames, a
+//! per-frame CSV of streaming statistics and, with `--reference`, the image
+//! error of every written frame against the complete database.
+
+use crate::app::camera::{to_render, FOV_Y};
+use crate::app::connect::{self, Source};
+use crate::app::reference::{image_error, reference_config, reference_qf, Reference};
+use crate::app::scene::{BuildMode, SceneBuilder};
+use anyhow::{bail, Context, Result};
+use planet_client::trajectory::Trajectory;
+use planet_client::ClientConfig;
+use planet_linksim::LinkConfig;
+use planet_view::{DrawBlock, HeadlessRenderer, RenderSettings};
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// Options of the render command.
+#[derive(Debug, Clone)]
+pub struct RenderOptions {
+    /// Built-in trajectory name or file.
+    pub trajectory: String,
+    /// Data source.
+    pub source: Source,
+    /// Optional simulated link.
+    pub link: Option<LinkConfig>,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Frames per second of trajectory time.
+    pub fps: f64,
+    /// Image size.
+    pub width: u32,
+    /// Image size.
+    pub height: u32,
+    /// Write every Nth frame.
+    pub every: usize,
+    /// Compute the image error against the complete database.
+    pub reference: bool,
+    /// Reference sample spacing in pixels.
+    pub reference_px: f64,
+    /// Pace frames to real time (the network runs in real time).
+    pub pace: bool,
+    /// Stop after this many seconds of trajectory time.
+    pub duration: Option<f64>,
+    /// Quality factor of the streaming client (fixed).
+    pub qf: Option<f64>,
+}
+
+/// Set `r_min` for the drawn blocks' chord sag.
+pub fn fit_planes(
+    base: &RenderSettings,
+    scene: &SceneBuilder,
+    blocks: &[DrawBlock],
+) -> RenderSettings {
+    let mut s = base.clone();
+    s.r_min = base.r_min - scene.max_sag(blocks) * 1.05 - 1.0;
+    s
+}
+
+fn load_trajectory(spec: &str) -> Result<Trajectory> {
+    if let Some(t) = Trajectory::builtin(spec) {
+        return Ok(t);
+    }
+    let p = std::path::Path::new(spec);
+    if !p.exists() {
+        bail!("no built-in trajectory {spec:?} (rainier, everest, orbit, static-low) and no such file");
+    }
+    Trajectory::load(p).with_context(|| format!("trajectory {spec}"))
+}
+
+fn fmt(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.6}")
+    } else {
+        String::new()
+    }
+}
+
+/// Run the command; prints a summary.
+pub fn run(opts: &RenderOptions) -> Result<()> {
+    let traj = load_trajectory(&opts.trajectory)?;
+    let duration = opts.duration.unwrap_or_else(|| traj.duration()).max(0.0);
+    let fps = opts.fps.max(0.1);
+    let every = opts.every.max(1);
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("creating {}", opts.out.display()))?;
+    let rt = connect::runtime()?;
+    let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
+    let mut cfg = ClientConfig::default();
+    if let Some(qf) = opts.qf {
+        cfg.quality.initial = qf;
+    }
+    let mut sc = connect::connect(&rt, &endpoint.session, cfg)?;
+    let header = sc.header().clone();
+    let datum = header.datum;
+    let base = RenderSettings::for_planet(
+        &datum,
+        header.min_elevation as f64,
+        header.max_elevation as f64,
+    );
+    let mut renderer = HeadlessRenderer::with_settings(opts.width, opts.height, base.clone())
+        .context("headless renderer (install mesa-vulkan-drivers for lavapipe)")?;
+    eprintln!("planet-view render: adapter {}", renderer.adapter_name);
+    let mut reference = if opts.reference {
+        let qf = reference_qf(opts.reference_px, FOV_Y, opts.height);
+        Some(match &endpoint.db_path {
+            Some(p) => {
+                let db = planet_core::format::DbFile::open(p)
+                    .with_context(|| format!("opening {} for the reference", p.display()))?;
+                Reference::from_file(db, qf)?
+            }
+            None => Reference::from_stream(connect::connect(
+                &rt,
+                &endpoint.direct,
+                reference_config(qf, 2),
+            )?),
+        })
+    } else {
+        None
+    };
+    let mut scene = SceneBuilder::new(&header);
+    let csv_path = opts.out.join("frames.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path).with_context(|| format!("{}", csv_path.display()))?,
+    );
+    writeln!(
+        csv,
+        "frame,time_s,bytes_received,in_flight,cancelled,cancelled_total,blocks,triangles,quality_factor,max_sse_px,mean_sse_px,written,depth_rmse_m,depth_rel_rmse,coverage_mismatch_px,covered_px,psnr_db,ref_blocks,ref_triangles,ref_frames,ref_converged"
+    )?;
+    let aspect = opts.width as f64 / opts.height as f64;
+    let n = (duration * fps).floor() as usize + 1;
+    let start = Instant::now();
+    let mut paused = Duration::ZERO;
+    let mut written = 0usize;
+    let mut errors = vec![];
+    let mut header_changes = sc.counters().header_changes;
+    for i in 0..n {
+        let t = i as f64 / fps;
+        if opts.pace {
+            let due = start + paused + Duration::from_secs_f64(t);
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+        }
+        let cam = traj.camera_at(t, &datum, FOV_Y, aspect, opts.height as f64);
+        let out = sc.frame(&cam, 1.0 / fps);
+        if sc.counters().header_changes != header_changes {
+            header_changes = sc.counters().header_changes;
+            scene = SceneBuilder::new(sc.header());
+        }
+        let s = &out.stats;
+        let write = i % every == 0 || i + 1 == n;
+        let mut row = format!(
+            "{i},{t:.4},{},{},{},{},{},{},{:.3},{:.4},{:.4},{}",
+            sc.bytes_received(),
+            s.in_flight,
+            s.cancelled,
+            s.totals.cancelled,
+            s.blocks_drawn,
+            s.triangles,
+            s.quality_factor,
+            s.max_screen_error,
+            s.mean_screen_error,
+            u8::from(write)
+        );
+        if write {
+            let blocks = scene.prepare(sc.client.tree(), &out.draw, BuildMode::Sync);
+            renderer.renderer.settings = fit_planes(&base, &scene, &blocks);
+            let cam_r = to_render(&cam);
+            let img = renderer.render(&cam_r, &blocks)?;
+            let png = opts.out.join(format!("frame_{i:05}.png"));
+            img.save_png(&png)?;
+            written += 1;
+            if let Some(r) = reference.as_mut() {
+                let t0 = Instant::now();
+                let rblocks = r.converge(&cam, 5000, Duration::from_secs(120));
+                renderer.renderer.settings = fit_planes(&base, r.scene(), &rblocks);
+                let rimg = renderer.render(&cam_r, &rblocks)?;
+                let e = image_error(&img, &rimg);
+                let rtris = renderer.renderer.stats.triangles;
+                row += &format!(
+                    ",{},{},{},{},{},{},{},{},{}",
+                    fmt(e.depth_rmse_m),
+                    fmt(e.depth_rel_rmse),
+                    e.coverage_mismatch,
+                    e.covered_both,
+                    fmt(e.psnr_db),
+                    rblocks.len(),
+                    rtris,
+                    r.last_frames,
+                    u8::from(r.last_converged)
+                );
+                if i == 0 {
+                    rimg.save_png(opts.out.join("reference_00000.png"))?;
+                }
+                errors.push((t, e));
+                paused += t0.elapsed();
+            } else {
+                row += ",,,,,,,,,";
+            }
+        } else {
+            row += ",,,,,,,,,";
+        }
+        writeln!(csv, "{row}")?;
+    }
+    csv.flush()?;
+    let wall = start.elapsed().as_secs_f64();
+    let totals = sc.client.totals();
+    println!(
+        "planet-view render: {n} frames ({written} written) of {duration:.1} s at {fps} fps in {wall:.1} s wall; {} bytes received, {} requests, {} cancelled; CSV {}",
+        sc.bytes_received(),
+        totals.sent,
+        totals.cancelled,
+        csv_path.display()
+    );
+    if let (Some(first), Some(last)) = (errors.first(), errors.last()) {
+        let mean = |f: &dyn Fn(&crate::app::reference::ImageError) -> f64| {
+            errors.iter().map(|(_, e)| f(e)).sum::<f64>() / errors.len() as f64
+        };
+        println!(
+            "image error vs the complete database: PSNR {:.2} dB -> {:.2} dB (mean {:.2}); depth RMSE {:.2} m -> {:.2} m (mean {:.2}); coverage mismatch {} -> {} px",
+            first.1.psnr_db,
+            last.1.psnr_db,
+            mean(&|e| e.psnr_db),
+            first.1.depth_rmse_m,
+            last.1.depth_rmse_m,
+            mean(&|e| e.depth_rmse_m),
+            first.1.coverage_mismatch,
+            last.1.coverage_mismatch
+        );
+    }
+    sc.close();
+    drop(reference);
+    endpoint.shutdown(&rt);
+    Ok(())
+}

@@ -1,0 +1,869 @@
+//! The interactive viewer: a winit 0.30 window with a wgpu surface.
+//!
+//! Each redraw: apply the input to the camera, run the streaming client's
+//! frame (deliver what arrived, select, request), turn its draw list into
+//! the renderer's ([`SceneBuilder`], meshes built on worker threads), draw
+//! the planet into an offscreen `Rgba8UnormSrgb` target with the shared
+//! [`Renderer`], then compose it with the text readout onto the surface
+//! (whatever its format) in one full-screen pass.
+//!
+//! Controls: WASD / arrows move (speed ∝ altitude, Shift ×5), mouse drag
+//! looks (fly) or orbits, scroll changes altitude / range, Q/E down / up,
+//! Tab toggles orbit / fly, G goes to `--goto`, C toggles crack fixing,
+//! H toggles the readout, Esc quits.
+
+use crate::app::camera::{to_render, Controller, Input, Mode};
+use crate::app::connect::{self, Endpoint, Source};
+use crate::app::hud;
+use crate::app::render_cmd::fit_planes;
+use crate::app::scene::{BuildMode, SceneBuilder};
+use anyhow::{Context, Result};
+use planet_client::quality::{QualityConfig, QualityMode};
+use planet_client::streaming::StreamingClient;
+use planet_client::ClientConfig;
+use planet_core::format::Header;
+use planet_view::render::{COLOR_FORMAT, DEPTH_FORMAT};
+use planet_view::{FrameTarget, RenderSettings, Renderer};
+use std::collections::HashSet;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+/// No display to open a window on (the message says what to do instead).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct NoDisplay(pub String);
+
+/// Options of the window.
+#[derive(Debug, Clone)]
+pub struct WindowOptions {
+    /// Data source.
+    pub source: Source,
+    /// Simulated link.
+    pub link: Option<planet_linksim::LinkConfig>,
+    /// Target frame rate of the quality controller.
+    pub target_fps: f64,
+    /// The --goto point.
+    pub goto: Option<[f64; 3]>,
+    /// Window size.
+    pub width: u32,
+    /// Window size.
+    pub height: u32,
+    /// Screenshot path (testing).
+    pub screenshot: Option<PathBuf>,
+    /// Exit after this many frames (testing).
+    pub exit_after_frames: Option<u64>,
+}
+
+fn no_display_message(detail: &str) -> String {
+    format!(
+        "planet-view: cannot open a window: {detail}.\n\
+         Without a display, either render offscreen:\n\
+         \x20   planet-view render --trajectory rainier --local --out frames/\n\
+         or run the window under a virtual X server:\n\
+         \x20   xvfb-run -a -s '-screen 0 1280x720x24' planet-view --local"
+    )
+}
+
+/// Open the window and run until it is closed.
+pub fn run(opts: WindowOptions) -> Result<()> {
+    let has = |k: &str| std::env::var_os(k).is_some_and(|v| !v.is_empty());
+    if !has("DISPLAY") && !has("WAYLAND_DISPLAY") {
+        return Err(NoDisplay(no_display_message(
+            "neither DISPLAY nor WAYLAND_DISPLAY is set",
+        ))
+        .into());
+    }
+    let event_loop = EventLoop::new()
+        .map_err(|e| NoDisplay(no_display_message(&format!("the event loop failed: {e}"))))?;
+    let rt = connect::runtime()?;
+    let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
+    let cfg = ClientConfig {
+        quality: QualityConfig {
+            mode: QualityMode::TargetFps(opts.target_fps.max(1.0)),
+            ..QualityConfig::default()
+        },
+        ..ClientConfig::default()
+    };
+    let client = connect::connect(&rt, &endpoint.session, cfg)?;
+    let header = client.header().clone();
+    let datum = header.datum;
+    let start_cam = match opts.goto {
+        Some([lat, lon, alt]) => Controller::fly(lat, lon, alt),
+        None => Controller::orbit(20.0, 10.0, 1.5 * datum.equatorial_radius()),
+    };
+    let mut app = App {
+        opts,
+        scene: SceneBuilder::new(&header),
+        header,
+        client: Some(client),
+        gfx: None,
+        error: None,
+        ctl: start_cam,
+        keys: HashSet::new(),
+        dragging: false,
+        last_cursor: None,
+        input: Input::default(),
+        last_frame: Instant::now(),
+        frames: 0,
+        fps: 0.0,
+        fps_window: (Instant::now(), 0),
+        last_title: Instant::now(),
+        crack_fixing: true,
+        show_hud: true,
+        header_changes: 0,
+        last_stats: None,
+    };
+    event_loop.set_control_flow(ControlFlow::Poll);
+    let r = event_loop.run_app(&mut app);
+    if let Some(c) = app.client.take() {
+        c.close();
+    }
+    drop(app.gfx.take());
+    shutdown(endpoint, rt);
+    r.context("event loop")?;
+    match app.error.take() {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+fn shutdown(endpoint: Endpoint, rt: tokio::runtime::Runtime) {
+    endpoint.shutdown(&rt);
+    rt.shutdown_timeout(std::time::Duration::from_secs(2));
+}
+
+struct Gfx {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    renderer: Renderer,
+    color: wgpu::Texture,
+    depth: wgpu::Texture,
+    hud_tex: wgpu::Texture,
+    hud_size: (u32, u32),
+    bind_group: wgpu::BindGroup,
+    bgl: wgpu::BindGroupLayout,
+    pipeline: wgpu::RenderPipeline,
+    copy_src: bool,
+    adapter_name: String,
+}
+
+const BLIT_WGSL: &str = r#"
+@group(0) @binding(0) var scene_tex: texture_2d<f32>;
+@group(0) @binding(1) var hud_tex: texture_2d<f32>;
+
+struct VOut { @builtin(position) pos: vec4<f32> };
+
+@vertex fn vs(@builtin(vertex_index) i: u32) -> VOut {
+    var out: VOut;
+    let x = f32((i << 1u) & 2u);
+    let y = f32(i & 2u);
+    out.pos = vec4<f32>(x * 2.0 - 1.0, 1.0 - y * 2.0, 0.0, 1.0);
+    return out;
+}
+
+fn encode(c: vec3<f32>) -> vec3<f32> {
+    let lo = c * 12.92;
+    let hi = 1.055 * pow(c, vec3<f32>(1.0 / 2.4)) - 0.055;
+    return select(hi, lo, c <= vec3<f32>(0.0031308));
+}
+
+@fragment fn fs(in: VOut) -> @location(0) vec4<f32> {
+    let p = vec2<i32>(in.pos.xy);
+    let sd = vec2<i32>(textureDimensions(scene_tex));
+    var c = textureLoad(scene_tex, min(p, sd - vec2<i32>(1)), 0).rgb;
+    let hd = vec2<i32>(textureDimensions(hud_tex));
+    if (p.x < hd.x && p.y < hd.y) {
+        let h = textureLoad(hud_tex, p, 0);
+        c = mix(c, h.rgb, h.a);
+    }
+    if (ENCODE) {
+        c = encode(c);
+    }
+    return vec4<f32>(c, 1.0);
+}
+"#;
+
+impl Gfx {
+    fn new(event_loop: &ActiveEventLoop, width: u32, height: u32) -> Result<Gfx> {
+        let attrs = Window::default_attributes()
+            .with_title("planet-view")
+            .with_inner_size(PhysicalSize::new(width, height));
+        let window = Arc::new(
+            event_loop
+                .create_window(attrs)
+                .context("creating the window")?,
+        );
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_with_display_handle_from_env(
+                Box::new(event_loop.owned_display_handle()),
+            ));
+        let surface = instance
+            .create_surface(window.clone())
+            .context("creating the surface")?;
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: Some(&surface),
+            apply_limit_buckets: false,
+        }))
+        .context("no graphics adapter for the window (install mesa-vulkan-drivers)")?;
+        let info = adapter.get_info();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("planet-view window"),
+            required_features: wgpu::Features::empty(),
+            required_limits: wgpu::Limits::downlevel_defaults().using_resolution(adapter.limits()),
+            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .context("requesting the device")?;
+        let size = window.inner_size();
+        let (w, h) = (size.width.max(1), size.height.max(1));
+        let caps = surface.get_capabilities(&adapter);
+        let mut config = surface
+            .get_default_config(&adapter, w, h)
+            .context("the surface is not supported by the adapter")?;
+        if let Some(f) = caps.formats.iter().find(|f| f.is_srgb()) {
+            config.format = *f;
+        }
+        let copy_src = caps.usages.contains(wgpu::TextureUsages::COPY_SRC)
+            && matches!(
+                config.format.remove_srgb_suffix(),
+                wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Rgba8Unorm
+            );
+        if copy_src {
+            config.usage |= wgpu::TextureUsages::COPY_SRC;
+        }
+        config.present_mode = if caps.present_modes.contains(&wgpu::PresentMode::Fifo) {
+            wgpu::PresentMode::Fifo
+        } else {
+            caps.present_modes[0]
+        };
+        surface.configure(&device, &config);
+        let shader_src = BLIT_WGSL.replace(
+            "ENCODE",
+            if config.format.is_srgb() {
+                "false"
+            } else {
+                "true"
+            },
+        );
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("blit"),
+            source: wgpu::ShaderSource::Wgsl(shader_src.into()),
+        });
+        let tex_entry = |binding| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::FRAGMENT,
+            ty: wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false,
+            },
+            count: None,
+        };
+        let bgl = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("blit"),
+            entries: &[tex_entry(0), tex_entry(1)],
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("blit"),
+            bind_group_layouts: &[Some(&bgl)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("blit"),
+            layout: Some(&layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            depth_stencil: None,
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: config.format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let renderer = Renderer::new(
+            device,
+            queue,
+            RenderSettings::for_planet(&planet_core::Datum::WGS84, -11_000.0, 9_000.0),
+        );
+        let (color, depth) = Self::targets(renderer.device(), w, h);
+        let hud_tex = Self::hud_texture(renderer.device(), 1, 1);
+        let bind_group = Self::bind(renderer.device(), &bgl, &color, &hud_tex);
+        Ok(Gfx {
+            window,
+            surface,
+            config,
+            renderer,
+            color,
+            depth,
+            hud_tex,
+            hud_size: (1, 1),
+            bind_group,
+            bgl,
+            pipeline,
+            copy_src,
+            adapter_name: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
+        })
+    }
+
+    fn targets(device: &wgpu::Device, w: u32, h: u32) -> (wgpu::Texture, wgpu::Texture) {
+        let size = wgpu::Extent3d {
+            width: w,
+            height: h,
+            depth_or_array_layers: 1,
+        };
+        let make = |format, usage, label| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        (
+            make(
+                COLOR_FORMAT,
+                wgpu::TextureUsages::RENDER_ATTACHMENT
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+                "scene colour",
+            ),
+            make(
+                DEPTH_FORMAT,
+                wgpu::TextureUsages::RENDER_ATTACHMENT,
+                "scene depth",
+            ),
+        )
+    }
+
+    fn hud_texture(device: &wgpu::Device, w: u32, h: u32) -> wgpu::Texture {
+        device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("hud"),
+            size: wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8UnormSrgb,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        })
+    }
+
+    fn bind(
+        device: &wgpu::Device,
+        bgl: &wgpu::BindGroupLayout,
+        color: &wgpu::Texture,
+        hud: &wgpu::Texture,
+    ) -> wgpu::BindGroup {
+        let cv = color.create_view(&Default::default());
+        let hv = hud.create_view(&Default::default());
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("blit"),
+            layout: bgl,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::TextureView(&cv),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(&hv),
+                },
+            ],
+        })
+    }
+
+    fn resize(&mut self, w: u32, h: u32) {
+        let (w, h) = (w.max(1), h.max(1));
+        if (w, h) == (self.config.width, self.config.height) {
+            return;
+        }
+        self.config.width = w;
+        self.config.height = h;
+        self.surface.configure(self.renderer.device(), &self.config);
+        let (c, d) = Self::targets(self.renderer.device(), w, h);
+        self.color = c;
+        self.depth = d;
+        self.bind_group = Self::bind(
+            self.renderer.device(),
+            &self.bgl,
+            &self.color,
+            &self.hud_tex,
+        );
+    }
+
+    fn set_hud(&mut self, panel: Option<&hud::Panel>) {
+        let (w, h, data) = match panel {
+            Some(p) => (p.width, p.height, p.rgba.clone()),
+            None => (1, 1, vec![0, 0, 0, 0]),
+        };
+        if (w, h) != self.hud_size {
+            self.hud_tex = Self::hud_texture(self.renderer.device(), w, h);
+            self.hud_size = (w, h);
+            self.bind_group = Self::bind(
+                self.renderer.device(),
+                &self.bgl,
+                &self.color,
+                &self.hud_tex,
+            );
+        }
+        self.renderer.queue().write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.hud_tex,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            &data,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(4 * w),
+                rows_per_image: Some(h),
+            },
+            wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+        );
+    }
+}
+
+/// Copy a texture (RGBA8 or BGRA8, `w × h`) to RGBA8 bytes.
+fn read_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+    bgra: bool,
+) -> Result<(u32, u32, Vec<u8>)> {
+    let (w, h) = (texture.width(), texture.height());
+    let row =
+        (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buf = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("screenshot"),
+        size: row as u64 * h as u64,
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut enc = device.create_command_encoder(&Default::default());
+    enc.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buf,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(h),
+            },
+        },
+        wgpu::Extent3d {
+            width: w,
+            height: h,
+            depth_or_array_layers: 1,
+        },
+    );
+    queue.submit([enc.finish()]);
+    let slice = buf.slice(..);
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| anyhow::anyhow!("poll: {e}"))?;
+    rx.recv()?.map_err(|e| anyhow::anyhow!("map: {e}"))?;
+    let data = slice
+        .get_mapped_range()
+        .map_err(|e| anyhow::anyhow!("mapped range: {e:?}"))?;
+    let mut out = Vec::with_capacity((w * h * 4) as usize);
+    for y in 0..h as usize {
+        let r = &data[y * row as usize..y * row as usize + 4 * w as usize];
+        if bgra {
+            for px in r.chunks_exact(4) {
+                out.extend_from_slice(&[px[2], px[1], px[0], 255]);
+            }
+        } else {
+            for px in r.chunks_exact(4) {
+                out.extend_from_slice(&[px[0], px[1], px[2], 255]);
+            }
+        }
+    }
+    drop(data);
+    buf.unmap();
+    Ok((w, h, out))
+}
+
+fn save_png(path: &std::path::Path, w: u32, h: u32, rgba: &[u8]) -> Result<()> {
+    let file = std::fs::File::create(path).with_context(|| format!("{}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w, h);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut wr = enc.write_header()?;
+    wr.write_image_data(rgba)?;
+    wr.finish()?;
+    Ok(())
+}
+
+struct App {
+    opts: WindowOptions,
+    header: Header,
+    scene: SceneBuilder,
+    client: Option<StreamingClient>,
+    gfx: Option<Gfx>,
+    error: Option<anyhow::Error>,
+    ctl: Controller,
+    keys: HashSet<KeyCode>,
+    dragging: bool,
+    last_cursor: Option<(f64, f64)>,
+    input: Input,
+    last_frame: Instant,
+    frames: u64,
+    fps: f64,
+    fps_window: (Instant, u64),
+    last_title: Instant,
+    crack_fixing: bool,
+    show_hud: bool,
+    header_changes: u64,
+    last_stats: Option<planet_client::stats::FrameStats>,
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+        self.error = Some(e);
+        event_loop.exit();
+    }
+
+    fn key(&mut self, event_loop: &ActiveEventLoop, ev: &KeyEvent) {
+        let PhysicalKey::Code(code) = ev.physical_key else {
+            return;
+        };
+        let datum = self.header.datum;
+        match ev.state {
+            ElementState::Pressed => {
+                self.keys.insert(code);
+                if ev.repeat {
+                    return;
+                }
+                match code {
+                    KeyCode::Escape => event_loop.exit(),
+                    KeyCode::Tab => self.ctl.toggle(&datum),
+                    KeyCode::KeyC => self.crack_fixing = !self.crack_fixing,
+                    KeyCode::KeyH => self.show_hud = !self.show_hud,
+                    KeyCode::KeyG => {
+                        if let Some([lat, lon, alt]) = self.opts.goto {
+                            self.ctl = Controller::fly(lat, lon, alt);
+                        } else {
+                            self.ctl =
+                                Controller::orbit(20.0, 10.0, 1.5 * datum.equatorial_radius());
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            ElementState::Released => {
+                self.keys.remove(&code);
+            }
+        }
+    }
+
+    fn held(&self) -> Input {
+        let k = |c: &[KeyCode]| c.iter().any(|c| self.keys.contains(c));
+        let axis =
+            |pos: &[KeyCode], neg: &[KeyCode]| f64::from(k(pos) as u8) - f64::from(k(neg) as u8);
+        Input {
+            forward: axis(
+                &[KeyCode::KeyW, KeyCode::ArrowUp],
+                &[KeyCode::KeyS, KeyCode::ArrowDown],
+            ),
+            right: axis(
+                &[KeyCode::KeyD, KeyCode::ArrowRight],
+                &[KeyCode::KeyA, KeyCode::ArrowLeft],
+            ),
+            up: axis(
+                &[KeyCode::KeyE, KeyCode::PageUp],
+                &[KeyCode::KeyQ, KeyCode::PageDown],
+            ),
+            boost: k(&[KeyCode::ShiftLeft, KeyCode::ShiftRight]),
+            ..self.input
+        }
+    }
+
+    fn redraw(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
+        let now = Instant::now();
+        let dt = (now - self.last_frame).as_secs_f64().max(1e-4);
+        self.last_frame = now;
+        let datum = self.header.datum;
+        let input = self.held();
+        self.input = Input::default();
+        self.ctl.update(&datum, &input, dt);
+        let (Some(gfx), Some(client)) = (self.gfx.as_mut(), self.client.as_mut()) else {
+            return Ok(());
+        };
+        let (w, h) = (gfx.config.width, gfx.config.height);
+        let cam = self.ctl.camera(&datum, w, h);
+        let out = client.frame(&cam, dt);
+        if client.counters().header_changes != self.header_changes {
+            self.header_changes = client.counters().header_changes;
+            self.header = client.header().clone();
+            self.scene = SceneBuilder::new(&self.header);
+        }
+        let blocks = self
+            .scene
+            .prepare(client.client.tree(), &out.draw, BuildMode::Async);
+        let base = RenderSettings::for_planet(
+            &self.header.datum,
+            self.header.min_elevation as f64,
+            self.header.max_elevation as f64,
+        );
+        let mut settings = fit_planes(&base, &self.scene, &blocks);
+        settings.crack_fixing = self.crack_fixing;
+        gfx.renderer.settings = settings;
+
+        // Readout.
+        self.frames += 1;
+        let (t0, n0) = self.fps_window;
+        if (now - t0).as_secs_f64() >= 0.5 {
+            self.fps = (self.frames - n0) as f64 / (now - t0).as_secs_f64();
+            self.fps_window = (now, self.frames);
+        }
+        let s = &out.stats;
+        let alt = self.ctl.altitude(&datum);
+        let mode = match self.ctl.mode {
+            Mode::Fly => "fly",
+            Mode::Orbit => "orbit",
+        };
+        let tris = gfx.renderer.stats.triangles;
+        let lines = vec![
+            format!(
+                "{:5.1} fps  {} tris  {} blocks  QF {:.3e}",
+                self.fps,
+                tris,
+                blocks.len(),
+                s.quality_factor
+            ),
+            format!(
+                "{} received  {} in flight  {} nodes  {}",
+                hud::bytes(client.bytes_received()),
+                s.in_flight,
+                s.nodes,
+                if client.is_connected() {
+                    "connected"
+                } else {
+                    "RECONNECTING"
+                }
+            ),
+            format!(
+                "alt {}  {}  cracks {}  SSE max {:.1} px  mesh jobs {}",
+                hud::metres(alt),
+                mode,
+                if self.crack_fixing { "fixed" } else { "OFF" },
+                s.max_screen_error,
+                self.scene.stats.pending
+            ),
+            "WASD/arrows move  drag look  wheel alt  Q/E down/up".to_string(),
+            "Tab orbit/fly  G goto  C cracks  H hud  Esc quit".to_string(),
+        ];
+        if (now - self.last_title).as_secs_f64() >= 0.5 || self.frames == 1 {
+            self.last_title = now;
+            gfx.window.set_title(&format!(
+                "planet-view — {:.1} fps, {} tris, {} received, {} in flight, QF {:.2e}, alt {}",
+                self.fps,
+                tris,
+                hud::bytes(client.bytes_received()),
+                s.in_flight,
+                s.quality_factor,
+                hud::metres(alt)
+            ));
+        }
+        let scale = if w >= 1600 { 2 } else { 1 };
+        let panel = self.show_hud.then(|| hud::rasterise(&lines, scale));
+        gfx.set_hud(panel.as_ref());
+        self.last_stats = Some(out.stats.clone());
+
+        // Draw.
+        let frame = match gfx.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(f)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                let size = gfx.window.inner_size();
+                gfx.config.width = 0;
+                gfx.resize(size.width, size.height);
+                return Ok(());
+            }
+            _ => return Ok(()),
+        };
+        let device = gfx.renderer.device().clone();
+        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("window frame"),
+        });
+        let cview = gfx.color.create_view(&Default::default());
+        let dview = gfx.depth.create_view(&Default::default());
+        gfx.renderer.encode(
+            &mut enc,
+            FrameTarget {
+                color: &cview,
+                depth: &dview,
+                width: w,
+                height: h,
+            },
+            &to_render(&cam),
+            &blocks,
+        );
+        let sview = frame.texture.create_view(&Default::default());
+        {
+            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("compose"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &sview,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(&gfx.pipeline);
+            pass.set_bind_group(0, &gfx.bind_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
+        gfx.renderer.queue().submit([enc.finish()]);
+        let done = self
+            .opts
+            .exit_after_frames
+            .is_some_and(|n| self.frames >= n);
+        if done {
+            if let Some(path) = self.opts.screenshot.clone() {
+                let queue = gfx.renderer.queue().clone();
+                let (sw, sh, rgba) = if gfx.copy_src {
+                    let bgra = matches!(
+                        gfx.config.format.remove_srgb_suffix(),
+                        wgpu::TextureFormat::Bgra8Unorm
+                    );
+                    read_texture(&device, &queue, &frame.texture, bgra)?
+                } else {
+                    read_texture(&device, &queue, &gfx.color, false)?
+                };
+                save_png(&path, sw, sh, &rgba)?;
+                eprintln!(
+                    "planet-view: screenshot {} ({}x{}, from the {}, adapter {}) after {} frames; last frame {} blocks, {} triangles, {} received",
+                    path.display(),
+                    sw,
+                    sh,
+                    if gfx.copy_src { "window surface" } else { "offscreen target" },
+                    gfx.adapter_name,
+                    self.frames,
+                    blocks.len(),
+                    tris,
+                    hud::bytes(client.bytes_received())
+                );
+            }
+        }
+        gfx.window.pre_present_notify();
+        gfx.renderer.queue().present(frame);
+        if done {
+            event_loop.exit();
+        }
+        Ok(())
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gfx.is_some() {
+            return;
+        }
+        match Gfx::new(event_loop, self.opts.width, self.opts.height) {
+            Ok(g) => {
+                eprintln!("planet-view: adapter {}", g.adapter_name);
+                self.gfx = Some(g);
+                self.last_frame = Instant::now();
+            }
+            Err(e) => self.fail(event_loop, e),
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                if let Some(g) = self.gfx.as_mut() {
+                    g.resize(size.width, size.height);
+                }
+            }
+            WindowEvent::KeyboardInput { event, .. } => self.key(event_loop, &event),
+            WindowEvent::ModifiersChanged(_) => {}
+            WindowEvent::MouseInput { state, button, .. } => {
+                if matches!(button, MouseButton::Left | MouseButton::Right) {
+                    self.dragging = state == ElementState::Pressed;
+                }
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                let p = (position.x, position.y);
+                if let (true, Some(last)) = (self.dragging, self.last_cursor) {
+                    self.input.drag.0 += p.0 - last.0;
+                    self.input.drag.1 += p.1 - last.1;
+                }
+                self.last_cursor = Some(p);
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                self.input.scroll += match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y as f64,
+                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+                };
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.redraw(event_loop) {
+                    self.fail(event_loop, e);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        if let Some(g) = &self.gfx {
+            g.window.request_redraw();
+        }
+    }
+}
