@@ -4,7 +4,7 @@ use planet_client::importance::{selected_lod, wants_split};
 use planet_client::streaming::StreamingClient;
 use planet_client::trajectory::{camera_from_keyframe, Keyframe};
 use planet_client::tree::Samples;
-use planet_client::{Camera, ClientConfig, FrameOutput, Outgoing};
+use planet_client::{Camera, ClientConfig, DrawBlock, FrameOutput, Outgoing};
 use planet_core::{BlockId, Datum};
 use planet_linksim::{Link, LinkConfig};
 use planet_preprocess::db::Sampler;
@@ -221,7 +221,20 @@ fn no_request_behind_the_horizon() {
     let r_occ = datum.polar_radius() + (h.min_elevation as f64).min(0.0);
     // Low cameras looking at the horizon in every direction, and one higher.
     let mut checked = 0usize;
-    let mut check = |camera: &Camera, sends: &[Outgoing]| {
+    let mut drawn_checked = 0usize;
+    let (h_min, h_max) = (h.min_elevation as f64, h.max_elevation as f64);
+    let mut check = |camera: &Camera, sends: &[Outgoing], drawn: &[DrawBlock]| {
+        // Nothing behind the horizon is drawn either (with the database's
+        // whole elevation range, a block found hidden is certainly hidden).
+        for d in drawn {
+            let hidden = block_behind_horizon(&datum, camera.eye, d.block, h_min, h_max, r_occ, 17);
+            assert!(
+                !hidden,
+                "{:?} drawn behind the horizon from {:?}",
+                d.block, camera.eye
+            );
+            drawn_checked += 1;
+        }
         for s in sends {
             let hidden = block_behind_horizon(
                 &datum,
@@ -254,10 +267,14 @@ fn no_request_behind_the_horizon() {
             cam(0.0, 179.9, 150_000.0, t * 90.0, -10.0)
         };
         let out = sc.frame(&camera, dt);
-        check(&camera, &out.send);
+        check(&camera, &out.send, &out.draw);
     }
     assert!(checked > 20, "too few requests checked ({checked})");
-    eprintln!("horizon: {checked} requests checked");
+    assert!(
+        drawn_checked > 100,
+        "too few drawn blocks checked ({drawn_checked})"
+    );
+    eprintln!("horizon: {checked} requests and {drawn_checked} drawn blocks checked");
     sc.close();
 }
 
