@@ -20,6 +20,7 @@ pub mod geotiff;
 pub mod plan;
 pub mod procedural;
 pub mod source;
+pub mod voidfill;
 
 pub use build::{build, BuildOptions, BuildStats, GridSource};
 pub use error::{BuildError, DbError, GeoError};

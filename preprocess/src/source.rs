@@ -10,20 +10,47 @@
 //! - Several elevation rasters stack: the finest one covering a point wins,
 //!   with bilinear interpolation inside it. Longitude wraps at the
 //!   antimeridian for global rasters; rows clamp at the poles.
-//! - Voids (GDAL no-data, and -32768 in int16 SRTM) are never stored: a void
-//!   pixel takes the value of the next coarser raster at its position (e.g.
-//!   ETOPO5 under SRTM, as the thesis filled SRTM gaps from BMNG, §5.1), or,
-//!   with none under it, the mean of the nearest ring of valid neighbours.
+//! - Voids (GDAL no-data, and -32768 in int16 SRTM) are never stored, nor
+//!   stored as pits: a void pixel takes a "delta surface fill", the next
+//!   coarser raster's value at its position (e.g. ETOPO5 under SRTM, as the
+//!   thesis filled SRTM gaps from BMNG, §5.1) plus the harmonic (Laplace)
+//!   interpolation over the void of the differences fine − coarse measured
+//!   on the valid pixels bordering it ([`crate::voidfill`]). With no coarser
+//!   raster under it, the fine values themselves are interpolated. The
+//!   filled surface thus meets the surrounding terrain without a step even
+//!   where the coarse value is 1000 m off (a 0.5° ETOPO5 cell at a summit).
+//!
+//!   Fills are computed lazily, the first time a void of a raster is read,
+//!   and kept (sparse: only the void pixels). The transient memory of a fill
+//!   is about [`FILL_BYTES_PER_CELL`] bytes per window pixel and must fit
+//!   the layer's share of the memory budget: a raster that fits (an SRTM
+//!   tile of 1201² needs ~70 MB) is filled as a whole, so every void region
+//!   sees its whole border; a larger one is filled per square tile within a
+//!   window with a margin of a sixth of the window (the window's edge acts
+//!   as a mirror, so only voids wider than the margin see less than their
+//!   full border). One fill per layer runs at a time, bounding the peak.
 //! - Colour comes from one RGB8 (or grey) raster, sampled bilinearly at texel
 //!   centres `(x·Wc + i + ½)/(Wc·2^L)`.
 
 use crate::build::GridSource;
 use crate::error::{BuildError, GeoError};
 use crate::geotiff::{GeoTiff, TiffReader};
+use parking_lot::Mutex;
 use planet_core::cube::{lat_lon_from_direction, normalize, plane_from_angle, sample_coord};
 use planet_core::lod::Rgb;
 use planet_core::{BlockId, Datum, FaceCoord};
+use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Arc;
+
+/// Transient bytes per window pixel of a void fill (grids and pyramid).
+pub const FILL_BYTES_PER_CELL: usize = 48;
+
+/// Filled values (metres) of the void pixels of one fill window, by
+/// `row · width + col` of the raster.
+type FillTable = HashMap<u64, f64>;
+/// Per layer: fill tables by window key, each computed once.
+type FillCache = Mutex<HashMap<(u32, u32), Arc<Mutex<Option<Arc<FillTable>>>>>>;
 
 /// Elevation block width used by this preprocessor.
 pub const ELEVATION_WIDTH: usize = 64;
@@ -52,6 +79,12 @@ pub struct Layer {
 pub struct ElevationStack {
     /// Layers sorted by increasing level (coarse to fine).
     pub layers: Vec<Layer>,
+    fills: Vec<FillCache>,
+    /// One fill computation per layer at a time (a fill of layer i only
+    /// reads fills of coarser layers, so these never wait in a cycle).
+    computing: Vec<Mutex<()>>,
+    /// Bytes a layer's fill window may take.
+    fill_budget: usize,
 }
 
 impl ElevationStack {
@@ -77,13 +110,21 @@ impl ElevationStack {
                 .unwrap_or(std::cmp::Ordering::Equal)
                 .reverse()
         });
-        Ok(ElevationStack { layers })
+        let fills = layers.iter().map(|_| Mutex::new(HashMap::new())).collect();
+        let computing = layers.iter().map(|_| Mutex::new(())).collect();
+        Ok(ElevationStack {
+            layers,
+            fills,
+            computing,
+            fill_budget: per,
+        })
     }
 
     /// A reader of the stack with per-layer chunk memos (one per worker and
     /// block: see [`crate::geotiff::TiffReader`]).
     pub fn reader(&self) -> StackReader<'_> {
         StackReader {
+            stack: self,
             layers: self.layers.iter().map(|l| l.tiff.reader()).collect(),
         }
     }
@@ -118,6 +159,7 @@ impl ElevationStack {
 
 /// Reads of an [`ElevationStack`] by one worker (lock-free on chunk hits).
 pub struct StackReader<'a> {
+    stack: &'a ElevationStack,
     layers: Vec<TiffReader<'a>>,
 }
 
@@ -154,30 +196,145 @@ impl StackReader<'_> {
         if !v.is_nan() {
             return Ok(v as f64);
         }
+        let t = self.layers[idx].tiff();
+        let (c, r) = t.clamp_pixel(col, row);
+        let key = (c as u64) + (r as u64) * t.width as u64;
+        let table = self.stack.fill_table(idx, c, r)?;
+        Ok(table.get(&key).copied().unwrap_or(0.0))
+    }
+
+    /// The value of the next coarser layer covering the position of pixel
+    /// `(col, row)` of layer `idx`, if any.
+    fn coarse_under(&mut self, idx: usize, col: i64, row: i64) -> Result<Option<f64>, GeoError> {
         let (lat, lon) = self.layers[idx].tiff().position_of(col, row);
         for j in (0..idx).rev() {
             if self.layers[j].tiff().covers(lat, lon) {
-                return self.sample_layer(j, lat, lon);
+                return self.sample_layer(j, lat, lon).map(Some);
             }
         }
-        // No coarser source: mean of the nearest ring of valid neighbours.
-        let t = &mut self.layers[idx];
-        for radius in 1..=64i64 {
-            let (mut sum, mut n) = (0.0, 0u32);
-            for d in -radius..=radius {
-                for (dc, dr) in [(d, -radius), (d, radius), (-radius, d), (radius, d)] {
-                    let w = t.elevation(col + dc, row + dr)?;
-                    if !w.is_nan() {
-                        sum += w as f64;
-                        n += 1;
+        Ok(None)
+    }
+}
+
+impl ElevationStack {
+    /// Whether layer `idx` is void-filled as a whole, else the tile side and
+    /// margin of its fill windows, from the memory budget.
+    fn fill_geometry(&self, idx: usize) -> (bool, u32, u32) {
+        let t = &self.layers[idx].tiff;
+        let cap = (self.fill_budget / FILL_BYTES_PER_CELL).max(64 * 64) as u64;
+        if t.width as u64 * t.height as u64 <= cap {
+            return (true, 0, 0);
+        }
+        let side = (cap as f64).sqrt() as u32;
+        let margin = (side / 6).clamp(8, 128);
+        (false, side - 2 * margin, margin)
+    }
+
+    /// The fill table of the window holding pixel `(c, r)` (in the raster)
+    /// of layer `idx`, computed on first use.
+    fn fill_table(&self, idx: usize, c: u32, r: u32) -> Result<Arc<FillTable>, GeoError> {
+        let (whole, tile, margin) = self.fill_geometry(idx);
+        let key = if whole { (0, 0) } else { (c / tile, r / tile) };
+        let slot = self.fills[idx].lock().entry(key).or_default().clone();
+        let mut slot = slot.lock();
+        if let Some(tb) = &*slot {
+            return Ok(tb.clone());
+        }
+        let _one = self.computing[idx].lock();
+        let tb = Arc::new(self.compute_fill(idx, whole, key, tile, margin)?);
+        *slot = Some(tb.clone());
+        Ok(tb)
+    }
+
+    /// Delta surface fill of one window of layer `idx` (see the module
+    /// documentation).
+    fn compute_fill(
+        &self,
+        idx: usize,
+        whole: bool,
+        key: (u32, u32),
+        tile: u32,
+        margin: u32,
+    ) -> Result<FillTable, GeoError> {
+        let t = &self.layers[idx].tiff;
+        let (w_all, h_all) = (t.width as i64, t.height as i64);
+        // Window [c0, c1) × [r0, r1) (columns may wrap for a global raster)
+        // and the part of it whose voids are kept.
+        let (c0, c1, r0, r1, keep) = if whole {
+            (0, w_all, 0, h_all, (0, w_all, 0, h_all))
+        } else {
+            let (kc0, kr0) = (key.0 as i64 * tile as i64, key.1 as i64 * tile as i64);
+            let (kc1, kr1) = (
+                (kc0 + tile as i64).min(w_all),
+                (kr0 + tile as i64).min(h_all),
+            );
+            let m = margin as i64;
+            let (c0, c1) = if t.is_global() {
+                (kc0 - m, kc1 + m)
+            } else {
+                ((kc0 - m).max(0), (kc1 + m).min(w_all))
+            };
+            (
+                c0,
+                c1,
+                (kr0 - m).max(0),
+                (kr1 + m).min(h_all),
+                (kc0, kc1, kr0, kr1),
+            )
+        };
+        let (w, h) = ((c1 - c0) as usize, (r1 - r0) as usize);
+        let mut rd = self.reader();
+        let mut raw = vec![0f64; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                raw[y * w + x] = rd.layers[idx].elevation(c0 + x as i64, r0 + y as i64)? as f64;
+            }
+        }
+        // Delta field: known on the valid pixels bordering a void, unknown
+        // (NaN) on the voids; other valid pixels do not enter the harmonic
+        // fill and are left unknown too (the push-pull guess fills them).
+        let mut delta = vec![f64::NAN; w * h];
+        let mut base = vec![0f64; w * h];
+        let mut voids = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let void = raw[i].is_nan();
+                let border = !void
+                    && ((x > 0 && raw[i - 1].is_nan())
+                        || (x + 1 < w && raw[i + 1].is_nan())
+                        || (y > 0 && raw[i - w].is_nan())
+                        || (y + 1 < h && raw[i + w].is_nan()));
+                if void || border {
+                    if void {
+                        voids.push(i);
+                    }
+                    let b = rd
+                        .coarse_under(idx, c0 + x as i64, r0 + y as i64)?
+                        .unwrap_or(0.0);
+                    base[i] = b;
+                    if border {
+                        delta[i] = raw[i] - b;
                     }
                 }
             }
-            if n > 0 {
-                return Ok(sum / n as f64);
+        }
+        let mut table = FillTable::new();
+        if voids.is_empty() {
+            return Ok(table);
+        }
+        crate::voidfill::harmonic_fill(&mut delta, w, h, &voids);
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let (c, r) = (c0 + x as i64, r0 + y as i64);
+                let inside = c >= keep.0 && c < keep.1 && r >= keep.2 && r < keep.3;
+                if raw[i].is_nan() && inside {
+                    table.insert(c as u64 + r as u64 * t.width as u64, base[i] + delta[i]);
+                }
             }
         }
-        Ok(0.0)
+        Ok(table)
     }
 }
 

@@ -102,8 +102,10 @@ fn srtm_minus_32768_is_void_and_filled_from_coarser() {
     img.write_data(&[500i16; 36]).unwrap();
     let s = ElevationStack::open(&[fine.as_path(), coarse.as_path()], 1 << 20).unwrap();
     assert_eq!(s.layers.len(), 2);
-    // Centre of the void pixel: the coarse value, not -32768.
-    assert_eq!(s.sample(48.5, 11.5).unwrap(), 500.0);
+    // Centre of the void pixel: never -32768, and no pit down to the coarse
+    // 500 m either: the coarse value plus the fine − coarse difference of
+    // its neighbours (all -490 m), i.e. the surrounding 10 m (delta fill).
+    assert!((s.sample(48.5, 11.5).unwrap() - 10.0).abs() < 1e-9);
     assert_eq!(s.sample(49.5, 10.5).unwrap(), 10.0);
 }
 
@@ -202,4 +204,105 @@ fn unsupported_sample_type_and_missing_file() {
         GeoTiff::open(Path::new("/nonexistent/x.tif"), 1 << 20),
         Err(GeoError::Open { .. })
     ));
+}
+
+/// Writes a constant int16 raster of 2° pixels, 30 × 20, tie point (6°E,
+/// 54°N): the coarse source under the 1° test rasters.
+fn write_flat_coarse(path: &Path, value: i16) {
+    let mut enc = TiffEncoder::new(File::create(path).unwrap()).unwrap();
+    let mut img = enc.new_image::<colortype::GrayI16>(30, 20).unwrap();
+    let d = img.encoder();
+    d.write_tag(Tag::ModelPixelScaleTag, &[2.0f64, 2.0, 0.0][..])
+        .unwrap();
+    d.write_tag(
+        Tag::ModelTiepointTag,
+        &[0.0f64, 0.0, 0.0, 6.0, 54.0, 0.0][..],
+    )
+    .unwrap();
+    d.write_tag(Tag::GeoKeyDirectoryTag, &geo_keys(2, 1, &[])[..])
+        .unwrap();
+    img.write_data(&vec![value; 600][..]).unwrap();
+}
+
+#[test]
+fn void_on_steep_slope_over_low_coarse_is_no_pit() {
+    let dir = tempfile::tempdir().unwrap();
+    let fine = dir.path().join("slope.tif");
+    let coarse = dir.path().join("low.tif");
+    let (w, h) = (40usize, 30usize);
+    let plane = |c: usize, r: usize| 500.0 + 150.0 * c as f64 + 40.0 * r as f64;
+    let void = |c: usize, r: usize| (12..28).contains(&c) && (10..20).contains(&r);
+    let data: Vec<i16> = (0..w * h)
+        .map(|i| {
+            let (c, r) = (i % w, i / w);
+            if void(c, r) {
+                -32768
+            } else {
+                plane(c, r) as i16
+            }
+        })
+        .collect();
+    write_tiff!(
+        &fine,
+        colortype::GrayI16,
+        w as u32,
+        h as u32,
+        &data,
+        geo_keys(2, 1, &[]),
+        None::<&str>
+    );
+    // The coarse source is flat and 3 km below the whole slope.
+    write_flat_coarse(&coarse, -3000);
+    for stack in [vec![fine.as_path(), coarse.as_path()], vec![fine.as_path()]] {
+        let s = ElevationStack::open(&stack, 1 << 20).unwrap();
+        let fi = s.layers.len() - 1;
+        // Boundary values: valid pixels 4-adjacent to the void.
+        let (mut lo, mut hi) = (f64::MAX, f64::MIN);
+        for r in 0..h {
+            for c in 0..w {
+                let next = [(1, 0), (-1, 0), (0, 1), (0, -1)].iter().any(|(dc, dr)| {
+                    let (nc, nr) = (c as i64 + dc, r as i64 + dr);
+                    nc >= 0
+                        && nr >= 0
+                        && (nc as usize) < w
+                        && (nr as usize) < h
+                        && void(nc as usize, nr as usize)
+                });
+                if !void(c, r) && next {
+                    lo = lo.min(plane(c, r));
+                    hi = hi.max(plane(c, r));
+                }
+            }
+        }
+        let tol = 1.0;
+        let mut worst_plane = 0f64;
+        for r in 0..h {
+            for c in 0..w {
+                if !void(c, r) {
+                    continue;
+                }
+                let v = s.pixel(fi, c as i64, r as i64).unwrap();
+                assert!(
+                    v >= lo - tol && v <= hi + tol,
+                    "{} layers: pixel ({c},{r}) = {v} outside [{lo}, {hi}]",
+                    stack.len()
+                );
+                // A harmonic fill reproduces the plane it is cut from.
+                worst_plane = worst_plane.max((v - plane(c, r)).abs());
+                // Bilinear samples across the void stay in range too.
+                let v = s
+                    .sample(49.5 - r as f64 - 0.3, 10.5 + c as f64 + 0.7)
+                    .unwrap();
+                assert!(v >= lo - tol && v <= hi + tol, "sample {v}");
+            }
+        }
+        assert!(
+            worst_plane < 0.5,
+            "worst departure from the plane {worst_plane}"
+        );
+        eprintln!(
+            "{} layers: void fill within [{lo}, {hi}], worst |fill - plane| = {worst_plane:.4} m",
+            stack.len()
+        );
+    }
 }
