@@ -137,6 +137,14 @@ fn seam_leaves() -> HashMap<BlockId, u8> {
         BlockId::new(f0, 3, 7, 2).unwrap(),
         [0, 0, 0, 1],
     );
+    // One level deeper still: level 5 beside face 2's level-2 blocks, the
+    // maximum level difference W = 16 allows (lod::max_level_difference = 3).
+    assert_eq!(planet_core::lod::max_level_difference(W), 3);
+    split(
+        &mut leaves,
+        BlockId::new(f0, 4, 15, 4).unwrap(),
+        [0, 1, 0, 1],
+    );
     // At the corner of faces 0, 2, 4.
     split(
         &mut leaves,
