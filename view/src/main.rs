@@ -101,9 +101,10 @@ struct Cli {
 struct WindowArgs {
     #[command(flatten)]
     source: SourceArgs,
-    /// Frame rate the quality controller aims at.
-    #[arg(long, default_value_t = 60.0)]
-    target_fps: f64,
+    /// Frame rate the quality controller aims at [default: 60, or 15 when
+    /// wgpu renders on the CPU (lavapipe), where 60 fps leaves only the roots].
+    #[arg(long)]
+    target_fps: Option<f64>,
     /// Start at (and return with G to) LAT,LON,ALT (degrees, metres).
     #[arg(long, value_name = "LAT,LON,ALT", allow_hyphen_values = true)]
     goto: Option<String>,

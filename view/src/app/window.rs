@@ -48,7 +48,8 @@ pub struct WindowOptions {
     /// Simulated link.
     pub link: Option<planet_linksim::LinkConfig>,
     /// Target frame rate of the quality controller.
-    pub target_fps: f64,
+    /// Target frame rate; `None` picks one from the adapter (see [`default_target_fps`]).
+    pub target_fps: Option<f64>,
     /// The --goto point.
     pub goto: Option<[f64; 3]>,
     /// Window size.
@@ -86,7 +87,11 @@ pub fn run(opts: WindowOptions) -> Result<()> {
     let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
     let cfg = ClientConfig {
         quality: QualityConfig {
-            mode: QualityMode::TargetFps(opts.target_fps.max(1.0)),
+            mode: QualityMode::TargetFps(
+                opts.target_fps
+                    .unwrap_or(default_target_fps(false))
+                    .max(1.0),
+            ),
             ..QualityConfig::default()
         },
         ..ClientConfig::default()
@@ -153,6 +158,8 @@ struct Gfx {
     pipeline: wgpu::RenderPipeline,
     copy_src: bool,
     adapter_name: String,
+    /// The adapter renders on the CPU (lavapipe, llvmpipe).
+    cpu_adapter: bool,
 }
 
 const BLIT_WGSL: &str = r#"
@@ -326,6 +333,7 @@ impl Gfx {
             pipeline,
             copy_src,
             adapter_name: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
+            cpu_adapter: info.device_type == wgpu::DeviceType::Cpu,
         })
     }
 
@@ -816,6 +824,15 @@ impl ApplicationHandler for App {
         match Gfx::new(event_loop, self.opts.width, self.opts.height) {
             Ok(g) => {
                 eprintln!("planet-view: adapter {}", g.adapter_name);
+                if g.cpu_adapter && self.opts.target_fps.is_none() {
+                    let fps = default_target_fps(true);
+                    if let Some(c) = self.client.as_mut() {
+                        c.client.quality_mut().set_mode(QualityMode::TargetFps(fps));
+                    }
+                    eprintln!(
+                        "planet-view: rendering on the CPU; aiming at {fps} fps (set --target-fps to change)"
+                    );
+                }
                 self.gfx = Some(g);
                 self.last_frame = Instant::now();
             }
@@ -865,5 +882,16 @@ impl ApplicationHandler for App {
         if let Some(g) = &self.gfx {
             g.window.request_redraw();
         }
+    }
+}
+
+/// The frame rate aimed at when `--target-fps` is not given: 60 on a GPU; 15
+/// on a CPU renderer, where 60 fps would drive the quality factor down to the
+/// root blocks.
+pub fn default_target_fps(cpu_adapter: bool) -> f64 {
+    if cpu_adapter {
+        15.0
+    } else {
+        60.0
     }
 }
