@@ -555,7 +555,7 @@ async fn serve_request(
         return;
     }
     metrics.requests_in_flight.inc();
-    let _guard = InFlightGuard {
+    let guard = InFlightGuard {
         est,
         id: req.id,
         gauge: &metrics.requests_in_flight,
@@ -652,9 +652,13 @@ async fn serve_request(
         }
         Some(Ok(())) => {
             let _ = send.finish();
-            // Hold the in-flight slot until the client has the data (or
-            // stops the stream), so the limit bounds buffered memory and a
-            // late stop is seen as a cancellation.
+            // The whole response is written: the request is no longer in
+            // flight, and the client, which has read the whole body, may
+            // reuse its id at once (holding the id until QUIC's
+            // acknowledgement made such a reuse fail with DuplicateRequest).
+            // Buffered memory stays bounded by the stream limit: the stream
+            // is open until acknowledged. A late stop is still a cancellation.
+            drop(guard);
             let acked = tokio::select! {
                 r = tokio::time::timeout(ACK_TIMEOUT, send.stopped()) => r.ok(),
                 _ = abort.wait_for(|a| *a) => None,
