@@ -7,22 +7,51 @@ use planet_core::{BlockId, Datum, Face};
 use std::path::PathBuf;
 
 fn main() -> std::io::Result<()> {
-    let dir = PathBuf::from(std::env::args().nth(1).unwrap_or_else(|| "fuzz/corpus".into()));
+    let dir = PathBuf::from(
+        std::env::args()
+            .nth(1)
+            .unwrap_or_else(|| "fuzz/corpus".into()),
+    );
     let rec_dir = dir.join("db_record");
     let hdr_dir = dir.join("db_header");
     std::fs::create_dir_all(&rec_dir)?;
     std::fs::create_dir_all(&hdr_dir)?;
     let block = BlockId::new(Face::new(2).unwrap(), 3, 5, 1).unwrap();
-    let kid = ChildRef { offset: 64, size: 200, error: 2.5, min_elevation: -5.0, max_elevation: 80.0 };
+    let kid = ChildRef {
+        offset: 64,
+        size: 200,
+        error: 2.5,
+        min_elevation: -5.0,
+        max_elevation: 80.0,
+    };
     let w = 64;
-    let grid: Vec<i16> = (0..(w + 1) * (w + 1)).map(|k| ((k * 37) % 500) as i16 - 100).collect();
-    let elev = encode_record(Tree::Elevation, block, &[kid; 4], &codec::encode_elevation(&grid, w));
+    let grid: Vec<i16> = (0..(w + 1) * (w + 1))
+        .map(|k| ((k * 37) % 500) as i16 - 100)
+        .collect();
+    let elev = encode_record(
+        Tree::Elevation,
+        block,
+        &[kid; 4],
+        &codec::encode_elevation(&grid, w),
+    );
     std::fs::write(rec_dir.join("seed-elevation"), elev)?;
-    let leaf = encode_record(Tree::Elevation, block, &[], &codec::encode_elevation(&grid, w));
+    let leaf = encode_record(
+        Tree::Elevation,
+        block,
+        &[],
+        &codec::encode_elevation(&grid, w),
+    );
     std::fs::write(rec_dir.join("seed-elevation-leaf"), leaf)?;
     let cw = 128;
-    let full: Vec<[u8; 3]> = (0..cw * cw).map(|k| [(k % 251) as u8, (k % 13) as u8, 200]).collect();
-    let colour = encode_record(Tree::Colour, block, &[], &codec::encode_colour(&full, &colour_filter(&full, cw), cw));
+    let full: Vec<[u8; 3]> = (0..cw * cw)
+        .map(|k| [(k % 251) as u8, (k % 13) as u8, 200])
+        .collect();
+    let colour = encode_record(
+        Tree::Colour,
+        block,
+        &[],
+        &codec::encode_colour(&full, &colour_filter(&full, cw), cw),
+    );
     std::fs::write(rec_dir.join("seed-colour"), colour)?;
     let eh = (w / 2 + 1) * (w / 2 + 1);
     for with_colour in [false, true] {
@@ -46,7 +75,10 @@ fn main() -> std::io::Result<()> {
             }),
             description: "fuzz seed".into(),
         };
-        std::fs::write(hdr_dir.join(format!("seed-header-{with_colour}")), h.encode())?;
+        std::fs::write(
+            hdr_dir.join(format!("seed-header-{with_colour}")),
+            h.encode(),
+        )?;
     }
     Ok(())
 }

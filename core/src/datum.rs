@@ -14,6 +14,12 @@
 //! These are the standard geodetic-to-ECEF formulas; tests compare them with
 //! geographiclib to 0.1 mm.
 
+/// The largest radius a database may declare: 10⁷ km, fourteen times the
+/// Sun's. A header is untrusted input; radii near 10³⁹ m would overflow the
+/// renderer's f32 block-relative vertices (docs/NUMERICS.md), and no planet,
+/// moon or game world needs more.
+pub const MAX_RADIUS: f64 = 1.0e10;
+
 /// The reference surface of a planet.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Datum {
@@ -62,12 +68,12 @@ impl Datum {
         }
     }
 
-    /// Whether the parameters describe a usable surface: finite, positive
-    /// radius, `0 ≤ e² < 1`.
+    /// Whether the parameters describe a usable surface: a positive radius
+    /// up to [`MAX_RADIUS`], `0 ≤ e² < 1`.
     pub fn is_valid(&self) -> bool {
         let a = self.equatorial_radius();
         let e2 = self.e2();
-        a.is_finite() && a > 0.0 && e2.is_finite() && (0.0..1.0).contains(&e2)
+        a.is_finite() && a > 0.0 && a <= MAX_RADIUS && e2.is_finite() && (0.0..1.0).contains(&e2)
     }
 
     /// Planet-space position (metres, f64) of the point at height `h` above
@@ -143,6 +149,12 @@ mod tests {
         assert!((Datum::WGS84.polar_radius() - 6_356_752.314_245).abs() < 1e-3);
         assert_eq!(Datum::Sphere { radius: 1737.4e3 }.polar_radius(), 1737.4e3);
         assert!(!Datum::Sphere { radius: f64::NAN }.is_valid());
+        assert!(Datum::Sphere { radius: MAX_RADIUS }.is_valid());
+        assert!(!Datum::Sphere {
+            radius: MAX_RADIUS * 1.0001
+        }
+        .is_valid());
+        assert!(!Datum::Sphere { radius: 1e39 }.is_valid());
         assert!(!Datum::Ellipsoid { a: 1.0, e2: 1.0 }.is_valid());
     }
 }

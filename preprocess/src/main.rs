@@ -126,7 +126,10 @@ fn run() -> Result<()> {
                     None => Datum::WGS84,
                 };
                 if !datum.is_valid() {
-                    bail!("invalid radius {radius:?}");
+                    bail!(
+                        "invalid --radius {radius:?}: must be a finite number of metres in (0, {:e}]",
+                        planet_core::datum::MAX_RADIUS
+                    );
                 }
                 let opts = planet_preprocess::ProceduralOptions {
                     seed,

@@ -4,7 +4,9 @@
 //! [`DrawBlock`]s:
 //!
 //! - [`mesh`]: a block's vertices, built off the render thread from its
-//!   elevation grid, as f32 offsets from an f64 block centre.
+//!   elevation grid, as f32 + f16 offsets from an f64 block centre.
+//! - [`camera_relative`]: the double-single `centre − eye + pos` that keeps
+//!   camera-relative vertices to one f32 rounding.
 //! - [`masks`]: the shared index masks per LOD, with the edge strips that
 //!   stitch a block to a coarser neighbour (no cracks, no T-junctions).
 //! - [`clip_planes`]: horizon-fitted near/far planes (thesis Eq. 4.3).
@@ -14,6 +16,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod camera_relative;
 pub mod clip_planes;
 pub mod headless;
 pub mod masks;

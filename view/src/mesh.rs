@@ -5,18 +5,19 @@
 //! `plane_from_angle`, `Face::cube_point`), so a sample shared by two blocks
 //! (also across cube edges, and with a coarser block whose sample `k` is this
 //! block's sample `k·2^d`) has a bit-identical f64 position. The block centre
-//! is kept in f64 and the vertices are stored as f32 offsets from it
-//! (camera-relative rendering adds `centre − eye` in f64 per block).
+//! is kept in f64 and the vertices are stored as f32 offsets from it plus an
+//! f16 residual; camera-relative rendering adds `centre − eye` as two f32
+//! parts per block with one final rounding ([`crate::camera_relative`]).
 
 use planet_core::cube::{normalize, plane_from_angle, sample_coord};
 use planet_core::{BlockId, Datum};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// One vertex as uploaded to the GPU (40 bytes).
+/// One vertex as uploaded to the GPU (44 bytes).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct Vertex {
-    /// Position relative to the block centre, metres.
+    /// Position relative to the block centre, metres: `f32(p − centre)`.
     pub pos: [f32; 3],
     /// Unit surface normal (planet frame).
     pub normal: [f32; 3],
@@ -24,8 +25,9 @@ pub struct Vertex {
     pub uv: [f32; 2],
     /// Altitude above the datum in metres.
     pub alt: f32,
-    /// Padding.
-    pub _pad: f32,
+    /// The residual `p − centre − pos` as f16 bits `[x, y, z, 0]`
+    /// ([`crate::camera_relative::low_part_f16`]).
+    pub pos_lo: [u16; 4],
 }
 
 /// Largest altitude magnitude (metres) a vertex is built with.
@@ -136,12 +138,13 @@ impl BlockMesh {
                     // point is at the planet centre (altitude = −radius).
                     sample_position(&Datum::Sphere { radius: 1.0 }, id, w, i, j, 0.0)
                 };
+                let (pos, _) = crate::camera_relative::split_f32(rel);
                 vertices.push(Vertex {
-                    pos: [rel[0] as f32, rel[1] as f32, rel[2] as f32],
+                    pos,
+                    pos_lo: crate::camera_relative::low_part_f16(rel, pos),
                     normal: [normal[0] as f32, normal[1] as f32, normal[2] as f32],
                     uv: [i as f32 / w as f32, j as f32 / w as f32],
                     alt: alt(i, j) as f32,
-                    _pad: 0.0,
                 });
             }
         }

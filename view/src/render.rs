@@ -320,7 +320,10 @@ struct Globals {
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct BlockUniform {
+    /// `centre − eye`, high part ([`crate::camera_relative::SplitOffset`]).
     offset: [f32; 4],
+    /// `centre − eye`, low part.
+    offset_lo: [f32; 4],
     tex: [f32; 4],
     flags: [f32; 4],
 }
@@ -399,7 +402,14 @@ impl Renderer {
     pub fn new(device: wgpu::Device, queue: wgpu::Queue, settings: RenderSettings) -> Renderer {
         let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("planet shader"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("shader.wgsl").into()),
+            source: wgpu::ShaderSource::Wgsl(
+                format!(
+                    "{}\n{}",
+                    crate::camera_relative::WGSL,
+                    include_str!("shader.wgsl")
+                )
+                .into(),
+            ),
         });
         let uniform_entry = |dynamic: bool, size: u64| wgpu::BindGroupLayoutEntry {
             binding: 0,
@@ -448,8 +458,7 @@ impl Renderer {
             bind_group_layouts: &[Some(&globals_bgl), Some(&block_bgl), Some(&tex_bgl)],
             immediate_size: 0,
         });
-        let attrs =
-            wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2, 3 => Float32];
+        let attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2, 3 => Float32, 4 => Float16x4];
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("planet pipeline"),
             layout: Some(&layout),
@@ -771,8 +780,10 @@ impl Renderer {
                 m.centre[1] - camera.position[1],
                 m.centre[2] - camera.position[2],
             ];
+            let off = crate::camera_relative::SplitOffset::new(rel);
             let bu = BlockUniform {
-                offset: [rel[0] as f32, rel[1] as f32, rel[2] as f32, 0.0],
+                offset: [off.hi[0], off.hi[1], off.hi[2], 0.0],
+                offset_lo: [off.lo[0], off.lo[1], off.lo[2], 0.0],
                 tex,
                 flags: [has_tex, 0.0, 0.0, 0.0],
             };

@@ -5,6 +5,7 @@ struct Globals {
 };
 struct BlockU {
     offset: vec4<f32>,
+    offset_lo: vec4<f32>,
     tex: vec4<f32>,
     flags: vec4<f32>,
 };
@@ -26,10 +27,13 @@ fn vs(
     @location(1) normal: vec3<f32>,
     @location(2) uv: vec2<f32>,
     @location(3) alt: f32,
+    @location(4) pos_lo: vec4<f32>,
 ) -> VOut {
     var out: VOut;
-    // Camera-relative: the block centre minus the eye was computed in f64.
-    let rel = pos + b.offset.xyz;
+    // Camera-relative: the block centre minus the eye was computed in f64 and
+    // split in two f32 parts; one rounding (camera_relative.wgsl).
+    // offset.w is 0.0, whose bits are the opaque zero camera_relative needs.
+    let rel = camera_relative(pos, pos_lo.xyz, b.offset.xyz, b.offset_lo.xyz, bitcast<u32>(b.offset.w));
     out.clip = g.view_proj * vec4<f32>(rel, 1.0);
     out.normal = normal;
     out.uv = uv;
