@@ -53,6 +53,10 @@ pub struct FlightArgs {
     /// Request queue size (requests in flight at most).
     #[arg(long)]
     pub queue: Option<usize>,
+    /// Do not filter requests by the view predicted for their arrival
+    /// (client/src/view_prediction.rs), for A/B comparisons.
+    #[arg(long)]
+    pub no_predict: bool,
     /// Stop after this many seconds of the trajectory.
     #[arg(long)]
     pub duration: Option<f64>,
@@ -106,6 +110,8 @@ pub struct Summary {
     pub bytes: u64,
     pub link_bytes_down: u64,
     pub relevant_pct: f64,
+    /// Forced neighbour refines not drawn on arrival (part of the rest).
+    pub forced_pct: f64,
     pub after_cancel_pct: f64,
     pub dropped_pct: f64,
     pub cancels: u64,
@@ -195,7 +201,10 @@ fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
         cfg.clone().with_seed(1),
         cfg.with_seed(2),
     ))?;
-    let mut client_cfg = ClientConfig::default();
+    let mut client_cfg = ClientConfig {
+        predict_view: !a.no_predict,
+        ..ClientConfig::default()
+    };
     if let Some(q) = a.queue {
         client_cfg.queue = QueueConfig {
             max_in_flight: q,
@@ -368,6 +377,7 @@ fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
         bytes: counters.bytes_received,
         link_bytes_down: link_stats.bytes_down,
         relevant_pct: 100.0 * totals.relevant_ratio(),
+        forced_pct: 100.0 * totals.forced_ratio(),
         after_cancel_pct: 100.0 * counters.bytes_after_cancel as f64 / b,
         dropped_pct: 100.0 * totals.bytes_dropped as f64 / b,
         cancels: counters.cancels,
@@ -424,7 +434,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| link | first frame (connect) | SSE ≤ 1 px after start | after 1st stop | after last stop | bytes | link bytes down | relevant | after cancel | dropped | requests / cancels | CPU/frame mean / p99 / max | final max SSE / true err | late frames |"
+        "| link | first frame (connect) | SSE ≤ 1 px after start | after 1st stop | after last stop | bytes | link bytes down | relevant (forced neighbours) | after cancel | dropped | requests / cancels | CPU/frame mean / p99 / max | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
@@ -433,7 +443,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
     for s in ss {
         let _ = writeln!(
             t,
-            "| {} | {:.0} ms ({:.0} ms) | {} | {} | {} | {:.2} MB | {:.2} MB | {:.2} % | {:.2} % | {:.2} % | {} / {} | {:.3} / {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {:.0} ms ({:.0} ms) | {} | {} | {} | {:.2} MB | {:.2} MB | {:.2} % ({:.2} %) | {:.2} % | {:.2} % | {} / {} | {:.3} / {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.label,
             s.first_frame_ms,
             s.connect_ms,
@@ -443,6 +453,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.bytes as f64 / 1e6,
             s.link_bytes_down as f64 / 1e6,
             s.relevant_pct,
+            s.forced_pct,
             s.after_cancel_pct,
             s.dropped_pct,
             s.requests,

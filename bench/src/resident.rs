@@ -71,6 +71,7 @@ pub fn run(a: ResidentArgs) -> Result<()> {
             initial: a.qf,
             ..QualityConfig::default()
         },
+        ..ClientConfig::default()
     };
     let mut client = Client::new(db.header.clone(), cfg)?;
     let mut server = FakeServer::new(1);

@@ -30,6 +30,7 @@ use crate::stats::{FrameStats, Totals};
 use crate::tree::{
     decode_record, Decoded, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
 };
+use crate::view_prediction::ViewPredictor;
 use crate::visibility::{Camera, View};
 use planet_core::format::{ChildRef, Header, Tree};
 use planet_core::BlockId;
@@ -49,6 +50,9 @@ pub struct ClientConfig {
     pub decode_threads: usize,
     /// The quality-factor controller.
     pub quality: QualityConfig,
+    /// Request only blocks still visible in the view predicted for when
+    /// their answer is applied ([`crate::view_prediction`]).
+    pub predict_view: bool,
 }
 
 impl Default for ClientConfig {
@@ -58,6 +62,7 @@ impl Default for ClientConfig {
             tree_ops_per_frame: 64,
             decode_threads: 2,
             quality: QualityConfig::default(),
+            predict_view: true,
         }
     }
 }
@@ -111,6 +116,7 @@ pub struct FrameOutput {
 struct Job {
     tree: Tree,
     block: BlockId,
+    forced: bool,
     width: usize,
     bytes: Vec<u8>,
     first: FirstLod,
@@ -119,6 +125,7 @@ struct Job {
 struct Done {
     tree: Tree,
     block: BlockId,
+    forced: bool,
     bytes: usize,
     result: Result<Decoded, RefineError>,
 }
@@ -128,6 +135,7 @@ fn run_job(job: Job) -> Done {
     Done {
         tree: job.tree,
         block: job.block,
+        forced: job.forced,
         bytes: job.bytes.len(),
         result,
     }
@@ -155,6 +163,7 @@ pub struct Client {
     since_last: FrameStats,
     totals: Totals,
     last_error: Option<String>,
+    predictor: ViewPredictor,
 }
 
 impl Client {
@@ -215,6 +224,7 @@ impl Client {
             since_last: FrameStats::default(),
             totals: Totals::default(),
             last_error: None,
+            predictor: ViewPredictor::new(),
         })
     }
 
@@ -278,6 +288,9 @@ impl Client {
 
     /// Hand over the response to request `id` (or its failure).
     pub fn deliver(&mut self, id: u64, result: Result<Vec<u8>, TransportError>) {
+        if let Some(f) = self.queue.get(id) {
+            self.predictor.observe_latency(f.age);
+        }
         let Some(req) = self.queue.take(id) else {
             if let Ok(b) = &result {
                 self.since_last.bytes_received += b.len() as u64;
@@ -301,6 +314,7 @@ impl Client {
         let job = Job {
             tree: req.tree,
             block: req.block,
+            forced: req.forced,
             width,
             bytes,
             first,
@@ -334,14 +348,14 @@ impl Client {
         let mut stats = std::mem::take(&mut self.since_last);
         stats.frame = self.frame;
         // 1. Finished refines.
-        let mut applied: Vec<(Tree, BlockId, usize)> = vec![];
+        let mut applied: Vec<(Tree, BlockId, usize, bool)> = vec![];
         while let Ok(d) = self.done_rx.try_recv() {
             self.decoding.remove(&(d.tree, d.block));
             match d.result {
                 Ok(dec) => {
                     if self.tree.apply_refine(dec) {
                         stats.refines_applied += 1;
-                        applied.push((d.tree, d.block, d.bytes));
+                        applied.push((d.tree, d.block, d.bytes, d.forced));
                     } else {
                         stats.bytes_dropped += d.bytes as u64;
                     }
@@ -374,10 +388,29 @@ impl Client {
         // 4. Requests.
         let tree = &self.tree;
         let mut cancel = self.queue.retain_relevant(|t, b| tree.wants_refine(t, b));
+        // Only blocks still visible when the answer will be applied
+        // (view_prediction.rs); forced neighbour loads ignore visibility.
+        let predicted = self
+            .predictor
+            .predict(camera, self.r_min)
+            .filter(|_| self.config.predict_view)
+            .map(|c| View::new(&c, self.r_min, self.r_max));
         let loads = sel
             .loads
             .into_iter()
             .filter(|r| !self.decoding.contains(&(r.tree, r.block)))
+            .filter(|r| {
+                let Some(pv) = &predicted else { return true };
+                if r.forced {
+                    return true;
+                }
+                // Colour blocks are culled through the elevation block of
+                // the same id when there is one.
+                tree.tree(Tree::Elevation)
+                    .and_then(|t| t.get(&r.block))
+                    .and_then(|n| n.bounds.as_ref())
+                    .is_none_or(|b| pv.is_visible(b))
+            })
             .collect();
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
@@ -396,7 +429,7 @@ impl Client {
         self.pending_ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
         // Stats.
         let draw = sel.draw;
-        for (t, b, bytes) in &applied {
+        for (t, b, bytes, forced) in &applied {
             let used = match t {
                 Tree::Elevation => draw.iter().any(|d| d.block == *b && d.lod == 0),
                 Tree::Colour => draw
@@ -405,6 +438,8 @@ impl Client {
             };
             if used {
                 self.totals.bytes_relevant += *bytes as u64;
+            } else if *forced {
+                self.totals.bytes_forced += *bytes as u64;
             }
         }
         self.last_triangles = sel.triangles;

@@ -14,6 +14,8 @@
 //!   horizon occlusion.
 //! - [`request_queue`]: fixed-size priority queues with per-frame
 //!   resubmission and cancellation (§3.5.2).
+//! - [`view_prediction`]: the camera extrapolated over the request latency,
+//!   so no block about to leave the view is requested.
 //! - [`selection`]: the per-frame traversal (draw list, triggers).
 //! - [`client`]: the frame loop, decode workers, and the interface a network
 //!   layer and a renderer drive.
@@ -39,6 +41,7 @@ pub mod testdb;
 pub mod tls;
 pub mod trajectory;
 pub mod tree;
+pub mod view_prediction;
 pub mod visibility;
 
 pub use client::{Client, ClientConfig, ClientError, FrameOutput, Outgoing, TransportError};

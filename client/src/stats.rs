@@ -67,6 +67,12 @@ pub struct Totals {
     pub bytes_rejected: u64,
     /// Bytes of records applied and drawn at their new LOD on arrival.
     pub bytes_relevant: u64,
+    /// Bytes of records applied, not drawn on arrival, that were loaded for
+    /// a neighbour's split (thesis §4.3.3: a visible block may split only
+    /// when its neighbours are at most the crack fixing's level difference
+    /// coarser, so an invisible coarse neighbour is refined first). Part of
+    /// the irrelevant bytes; the rest is `received − relevant − forced`.
+    pub bytes_forced: u64,
     /// Records applied.
     pub refines_applied: u64,
     /// Records rejected.
@@ -80,6 +86,16 @@ impl Totals {
             1.0
         } else {
             self.bytes_relevant as f64 / self.bytes_received as f64
+        }
+    }
+
+    /// Bytes of forced neighbour refines not drawn on arrival over received
+    /// bytes (0 when nothing was received).
+    pub fn forced_ratio(&self) -> f64 {
+        if self.bytes_received == 0 {
+            0.0
+        } else {
+            self.bytes_forced as f64 / self.bytes_received as f64
         }
     }
 }

@@ -1,0 +1,165 @@
+//! Where the camera will be when a request's answer is applied.
+//!
+//! Beyond the thesis (§3.5.2 ranks requests by the *current* view; the
+//! papers' "relevant data" is the share of received bytes used for rendering
+//! on arrival, thesis-notes §4). A response is applied a round trip, its
+//! transfer time and one decode after the request: at 1 Mbit/s with a queue
+//! of 16 that is half a second, in which a descending or flying camera leaves
+//! behind the blocks at the border of its view. Those answers arrive for
+//! blocks no longer drawn and are irrelevant bytes.
+//!
+//! The predictor extrapolates the camera linearly (eye and view direction,
+//! per frame) over the measured request latency in frames (an exponential
+//! moving average of the frames from send to delivery, plus one for the
+//! decode), and the client requests a visible block only if it is visible in
+//! the predicted view as well. A static camera predicts itself, so nothing
+//! changes for it; the displacement is capped at half the height above the
+//! planet's minimum sphere and the turn at 30°, so a prediction never puts the
+//! eye inside the planet or flips the view.
+
+use crate::visibility::Camera;
+use glam::DVec3;
+
+/// Largest predicted turn of the view direction, radians.
+const MAX_TURN: f64 = std::f64::consts::PI / 6.0;
+/// Weight of a new latency sample in the moving average.
+const LATENCY_SMOOTHING: f64 = 0.2;
+
+/// Linear camera extrapolation over the measured request latency.
+#[derive(Debug, Clone, Default)]
+pub struct ViewPredictor {
+    prev: Option<Camera>,
+    latency_frames: Option<f64>,
+}
+
+impl ViewPredictor {
+    /// A predictor with no history.
+    pub fn new() -> ViewPredictor {
+        ViewPredictor::default()
+    }
+
+    /// A response arrived `frames` frames after its request was sent.
+    pub fn observe_latency(&mut self, frames: u32) {
+        let f = frames as f64;
+        self.latency_frames = Some(match self.latency_frames {
+            None => f,
+            Some(l) => l + LATENCY_SMOOTHING * (f - l),
+        });
+    }
+
+    /// The measured latency from request to applied answer, in frames
+    /// (delivery plus one frame of decoding), if any response arrived yet.
+    pub fn horizon_frames(&self) -> Option<f64> {
+        self.latency_frames.map(|l| l + 1.0)
+    }
+
+    /// Record this frame's camera and return the camera predicted when a
+    /// request sent now is applied; `None` when there is nothing to predict
+    /// (first frame, no latency measured yet, or the camera did not move).
+    /// `r_min` is the radius of the planet's minimum sphere.
+    pub fn predict(&mut self, camera: &Camera, r_min: f64) -> Option<Camera> {
+        let prev = self.prev.replace(*camera)?;
+        let tau = self.horizon_frames()?;
+        let step = camera.eye - prev.eye;
+        let f0 = prev.forward.try_normalize()?;
+        let f1 = camera.forward.try_normalize()?;
+        if !(step.is_finite() && tau.is_finite()) {
+            return None;
+        }
+        if step == DVec3::ZERO && f0 == f1 {
+            return None;
+        }
+        // Eye: linear, at most half the height above the minimum sphere.
+        let mut shift = step * tau;
+        let height = camera.eye.length() - r_min;
+        let cap = 0.5 * height.max(0.0);
+        if shift.length() > cap {
+            shift = shift.normalize_or_zero() * cap;
+        }
+        // View direction: the per-frame turn, repeated, at most MAX_TURN.
+        let turn = (f0.angle_between(f1) * tau).min(MAX_TURN);
+        let forward = match f0.cross(f1).try_normalize() {
+            Some(axis) if turn > 0.0 && turn.is_finite() => {
+                glam::DQuat::from_axis_angle(axis, turn).mul_vec3(f1)
+            }
+            _ => f1,
+        };
+        Some(Camera {
+            eye: camera.eye + shift,
+            forward,
+            ..*camera
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const R: f64 = 6_371_000.0;
+
+    fn cam(eye: DVec3, forward: DVec3) -> Camera {
+        Camera {
+            eye,
+            forward,
+            up: DVec3::Z,
+            fov_y: 1.0,
+            aspect: 1.0,
+            viewport_height_px: 1000.0,
+        }
+    }
+
+    #[test]
+    fn static_camera_and_no_latency_predict_nothing() {
+        let mut p = ViewPredictor::new();
+        let c = cam(DVec3::new(R + 1000.0, 0.0, 0.0), DVec3::NEG_X);
+        assert!(p.predict(&c, R).is_none());
+        assert!(p.predict(&c, R).is_none(), "no latency yet");
+        p.observe_latency(10);
+        assert!(p.predict(&c, R).is_none(), "did not move");
+    }
+
+    #[test]
+    fn moving_eye_is_extrapolated_over_the_latency() {
+        let mut p = ViewPredictor::new();
+        p.observe_latency(9); // + 1 frame of decoding = 10
+        let a = cam(DVec3::new(R + 100_000.0, 0.0, 0.0), DVec3::NEG_X);
+        let b = cam(DVec3::new(R + 99_000.0, 0.0, 0.0), DVec3::NEG_X);
+        assert!(p.predict(&a, R).is_none());
+        let q = p.predict(&b, R).expect("moving");
+        assert!((q.eye.x - (R + 89_000.0)).abs() < 1e-6, "{}", q.eye.x - R);
+        assert_eq!(q.forward, b.forward.normalize());
+    }
+
+    #[test]
+    fn prediction_never_enters_the_planet() {
+        let mut p = ViewPredictor::new();
+        p.observe_latency(1000);
+        let a = cam(DVec3::new(R + 2_000.0, 0.0, 0.0), DVec3::NEG_X);
+        let b = cam(DVec3::new(R + 1_000.0, 0.0, 0.0), DVec3::NEG_X);
+        p.predict(&a, R);
+        let q = p.predict(&b, R).expect("moving");
+        assert!((q.eye.x - (R + 500.0)).abs() < 1e-6, "{}", q.eye.x - R);
+    }
+
+    #[test]
+    fn turning_view_is_extrapolated_and_capped() {
+        let mut p = ViewPredictor::new();
+        p.observe_latency(4); // 5 frames
+        let eye = DVec3::new(R + 1e6, 0.0, 0.0);
+        let deg = 1f64.to_radians();
+        let a = cam(eye, DVec3::NEG_X);
+        let b = cam(eye, DVec3::new(-deg.cos(), deg.sin(), 0.0));
+        p.predict(&a, R);
+        let q = p.predict(&b, R).expect("turning");
+        let turned = DVec3::NEG_X.angle_between(q.forward).to_degrees();
+        assert!((turned - 6.0).abs() < 1e-6, "{turned}");
+        // 100 frames of latency: capped at 30° beyond the current direction.
+        let mut p = ViewPredictor::new();
+        p.observe_latency(99);
+        p.predict(&a, R);
+        let q = p.predict(&b, R).expect("turning");
+        let turned = DVec3::NEG_X.angle_between(q.forward).to_degrees();
+        assert!((turned - 31.0).abs() < 1e-6, "{turned}");
+    }
+}
