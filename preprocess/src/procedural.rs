@@ -275,7 +275,8 @@ impl Procedural {
     /// latitude, slope) go into per-row arrays, then the branch-free f32
     /// [`palette`] runs over the row (it vectorises). The per-texel position
     /// arithmetic is done once per column and per row, the lattice fields'
-    /// horizontal interpolation once per lattice row band.
+    /// horizontal interpolation once per lattice row band, the elevation's
+    /// vertical interpolation once per grid column.
     fn colour_for(&self, b: BlockId, elev: &[i16]) -> Vec<Rgb> {
         let (us, vs) = plane_axes(b);
         let n = EW / LATTICE + 1;
@@ -314,7 +315,14 @@ impl Procedural {
             }
         };
         let cols: Vec<Axis> = (0..CW).map(axis).collect();
-        let fxs: Vec<f32> = cols.iter().map(|c| c.fx).collect();
+        // Texel columns 2m and 2m + 1 lie in elevation cell m (CW = 2·EW):
+        // per-column arrays are kept de-interleaved, even columns first
+        // (position m), then odd ones (position H + m), so that a row needs
+        // no gather.
+        const H: usize = CW / 2;
+        const _: () = assert!(CW == 2 * EW);
+        let pos = |k: usize| (k % 2) * H + k / 2;
+        let (fx_even, fx_odd) = (cols[0].fx, cols[1].fx);
         // Per lattice row band `mj`: for each column, the horizontally
         // interpolated moisture and latitude on lattice rows mj and mj + 1.
         let mut band = usize::MAX;
@@ -331,36 +339,42 @@ impl Procedural {
                     let row = |g: &[f64], r: usize| {
                         (g[r * n + mi] + (g[r * n + mi + 1] - g[r * n + mi]) * mfx) as f32
                     };
-                    m0[k] = row(&moist, mj);
-                    m1[k] = row(&moist, mj + 1);
-                    t0[k] = row(&lats, mj);
-                    t1[k] = row(&lats, mj + 1);
+                    let q = pos(k);
+                    m0[q] = row(&moist, mj);
+                    m1[q] = row(&moist, mj + 1);
+                    t0[q] = row(&lats, mj);
+                    t1[q] = row(&lats, mj + 1);
                 }
             }
             let e0 = &elev[y0 * side..(y0 + 1) * side];
             let e1 = &elev[(y0 + 1) * side..(y0 + 2) * side];
-            let (mut a00, mut a10) = ([0f32; CW], [0f32; CW]);
-            let (mut a01, mut a11) = ([0f32; CW], [0f32; CW]);
-            for (k, c) in cols.iter().enumerate() {
-                a00[k] = e0[c.x0] as f32;
-                a10[k] = e0[c.x0 + 1] as f32;
-                a01[k] = e1[c.x0] as f32;
-                a11[k] = e1[c.x0 + 1] as f32;
+            // Elevation between the two grid rows, per grid column, and the
+            // slope of each grid cell (for rock on steep terrain).
+            let mut v = [0f32; EW + 1];
+            for (vi, (&a, &c)) in v.iter_mut().zip(e0.iter().zip(e1)) {
+                let (a, c) = (a as f32, c as f32);
+                *vi = a + (c - a) * fy;
+            }
+            let mut h = [0f32; CW];
+            let mut slope = [0f32; CW];
+            for m in 0..H {
+                let d = v[m + 1] - v[m];
+                h[m] = v[m] + d * fx_even;
+                h[H + m] = v[m] + d * fx_odd;
+                let a00 = e0[m] as f32;
+                slope[m] =
+                    ((e0[m + 1] as f32 - a00).abs() + (e1[m] as f32 - a00).abs()) * inv_slope_scale;
+                slope[H + m] = slope[m];
             }
             let (mut r, mut g, mut bl) = ([0f32; CW], [0f32; CW], [0f32; CW]);
-            for k in 0..CW {
-                let fx = fxs[k];
-                let top = a00[k] + (a10[k] - a00[k]) * fx;
-                let bot = a01[k] + (a11[k] - a01[k]) * fx;
-                let h = top + (bot - top) * fy;
-                let m = m0[k] + (m1[k] - m0[k]) * mfy;
-                let lat = t0[k] + (t1[k] - t0[k]) * mfy;
-                // Slope (for rock on steep terrain), from the elevation grid.
-                let slope = ((a10[k] - a00[k]).abs() + (a01[k] - a00[k]).abs()) * inv_slope_scale;
-                [r[k], g[k], bl[k]] = palette(h, lat, m, slope);
+            for q in 0..CW {
+                let m = m0[q] + (m1[q] - m0[q]) * mfy;
+                let lat = t0[q] + (t1[q] - t0[q]) * mfy;
+                [r[q], g[q], bl[q]] = palette(h[q], lat, m, slope[q]);
             }
-            for (k, o) in orow.iter_mut().enumerate() {
-                *o = [to_u8(r[k]), to_u8(g[k]), to_u8(bl[k])];
+            for (m, o) in orow.chunks_exact_mut(2).enumerate() {
+                o[0] = [to_u8(r[m]), to_u8(g[m]), to_u8(bl[m])];
+                o[1] = [to_u8(r[H + m]), to_u8(g[H + m]), to_u8(bl[H + m])];
             }
         }
         out
@@ -853,6 +867,82 @@ mod tests {
                 assert_eq!(edge(&ga, e), edge(&gb, back), "{b:?} {e:?}");
             }
         }
+    }
+
+    #[test]
+    fn cell_and_rounding_helpers_are_exact() {
+        for &x in &[
+            0.0,
+            -0.0,
+            0.25,
+            -0.25,
+            1.0,
+            -1.0,
+            2.5,
+            -2.5,
+            1e-300,
+            -1e-300,
+            0.999_999_999_999,
+            -0.999_999_999_999,
+            12_345.678,
+            -12_345.678,
+            1_073_741_823.5,
+            -1_073_741_824.0,
+            2_000_000_000.75,
+            -2_000_000_000.75,
+        ] {
+            let (c, f) = cell_of(x);
+            assert_eq!(c as f64, x.floor(), "cell of {x}");
+            assert_eq!(f, (x - x.floor()) as f32, "position of {x}");
+        }
+        for &x in &[
+            0.0, 0.4, 0.6, -0.4, -0.6, 1.5, 2.5, -1.5, 7999.6, -7999.6, 1e9, -1e9,
+        ] {
+            let r = round_to_i16(x);
+            let want = x.clamp(-8000.0, 8000.0).round_ties_even();
+            assert_eq!(r as f64, want, "round {x}");
+        }
+        for &c in &[0.0, 0.4, 0.6, 254.5, 255.0, 300.0, -3.0] {
+            assert_eq!(to_u8(c) as f32, c.clamp(0.0, 255.0).round_ties_even());
+        }
+    }
+
+    #[test]
+    #[allow(clippy::needless_range_loop)] // `i` indexes the octaves' rows
+    fn detail_noise_is_continuous_and_bounded() {
+        // A row of directions finely spaced across many cells of the finest
+        // octave: neighbouring values differ by at most a Lipschitz bound,
+        // so the noise has no jumps at cell boundaries.
+        let g = gen(6);
+        let mut octs = g.high_octaves();
+        let step = 1.0e-5;
+        let mut prev: Option<[f32; HIGH_OCTAVES as usize]> = None;
+        let mut spread = 0f32;
+        for r in 0..200 {
+            let (mut px, mut py, mut pz) = ([0f64; ROW], [0f64; ROW], [0f64; ROW]);
+            for i in 0..ROW {
+                let t = (r * ROW + i) as f64 * step - 0.05;
+                [px[i], py[i], pz[i]] = normalize([t, 0.3 + 0.5 * t, 1.0]);
+            }
+            let mut vals = [[0f32; ROW]; HIGH_OCTAVES as usize];
+            for (o, v) in octs.iter_mut().zip(vals.iter_mut()) {
+                o.add_row(&px, &py, &pz, v);
+            }
+            for i in 0..ROW {
+                let cur: [f32; HIGH_OCTAVES as usize] = std::array::from_fn(|k| vals[k][i]);
+                if let Some(p) = prev {
+                    for (k, o) in octs.iter().enumerate() {
+                        // |∇noise| ≤ ~3 per cell; the step is f·step cells.
+                        let bound = o.amp * 4.0 * (o.f * step * 1.2) as f32 + 1e-4;
+                        assert!((cur[k] - p[k]).abs() <= bound, "octave {k} jumps");
+                        assert!(cur[k].abs() <= o.amp * 1.2, "octave {k} out of range");
+                        spread = spread.max(cur[k].abs() / o.amp);
+                    }
+                }
+                prev = Some(cur);
+            }
+        }
+        assert!(spread > 0.3, "noise too flat: {spread}");
     }
 
     #[test]
