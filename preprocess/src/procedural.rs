@@ -3,15 +3,18 @@
 //! (thesis §5.3) on a uniform tree.
 //!
 //! Elevation is a function of the unit direction (so it is seamless over cube
-//! edges and poles), evaluated in f64: domain-warped fBm continents, ridged
-//! mountain ranges, and fBm detail down to about two samples at the leaf
-//! level, from about −8000 m to +8000 m. For speed, everything but the three
-//! finest detail octaves is evaluated on a lattice of every 8th sample of a
-//! leaf and interpolated bilinearly; a sample on a block edge then depends
-//! only on lattice points on that edge, whose directions are bit-identical
-//! from both blocks (thesis-notes §9.4), so shared edge samples agree exactly.
-//! Colour is a function of altitude, latitude and a moisture field: ocean
-//! blues, beaches, greens, deserts, rock, snow caps and polar ice.
+//! edges and poles): domain-warped fBm continents, ridged mountain ranges,
+//! and fBm detail down to about two samples at the leaf level, from about
+//! −8000 m to +8000 m. For speed, everything but the three finest detail
+//! octaves is evaluated in f64 on a lattice of every 8th sample of a leaf and
+//! interpolated bilinearly; a sample on a block edge then depends only on
+//! lattice points on that edge, whose directions are bit-identical from both
+//! blocks (thesis-notes §9.4), so shared edge samples agree exactly. The
+//! three finest octaves are evaluated per sample, a row at a time, in f32
+//! within each noise cell ([`DetailOctave`]), again a function of the
+//! sample's direction alone. Colour is a function of altitude, latitude and
+//! a moisture field: ocean blues, beaches, greens, deserts, rock, snow caps
+//! and polar ice ([`palette`], f32, branch-free).
 
 use crate::build::{build, BuildOptions, BuildStats, GridSource, CW, EW};
 use crate::error::BuildError;
@@ -149,15 +152,15 @@ impl Procedural {
         [h, 0.4 + 2.0 * mountains, moisture]
     }
 
-    /// The per-sample detail octaves: `(seed, frequency, amplitude)` of each,
-    /// computed as the original loop did (bit-identical factors).
-    fn high_octaves(&self) -> Vec<(u64, f64, f64)> {
+    /// The per-sample detail octaves, each with its frequency and amplitude
+    /// as the lattice octaves' loop would continue them.
+    fn high_octaves(&self) -> Vec<DetailOctave> {
         let k0 = self.detail_octaves.saturating_sub(HIGH_OCTAVES);
         let mut f = DETAIL_F0 * 2f64.powi(k0 as i32);
         let mut a = 420.0 * 0.5f64.powi(k0 as i32);
         let mut out = Vec::with_capacity(HIGH_OCTAVES as usize);
         for k in k0..self.detail_octaves {
-            out.push((self.seed ^ (0x100 + k as u64), f, a));
+            out.push(DetailOctave::new(self.seed ^ (0x100 + k as u64), f, a));
             f *= 2.0;
             a *= 0.5;
         }
@@ -179,15 +182,16 @@ impl Procedural {
     /// Elevation (metres, before quantisation) of a leaf's samples.
     ///
     /// Per sample: the bilinear lattice fields and the [`HIGH_OCTAVES`] detail
-    /// octaves, each through a [`CachedNoise`] (consecutive samples of a row
-    /// share cells). The interpolation weights are per row and per column.
+    /// octaves ([`DetailOctave`], a row of samples at a time). The lattice fields are interpolated between
+    /// lattice rows once per sample row (9 columns), then along the row; on
+    /// a block edge this is the same `a + (b − a)·t` of the two lattice points
+    /// on the edge whichever way the edge runs in the block.
     fn leaf_elevation(&self, b: BlockId) -> (Vec<i16>, Vec<[f64; 3]>) {
         let (us, vs) = plane_axes(b);
         let lat = self.lattice(b, &us, &vs);
         let side = EW + 1;
         let n = EW / LATTICE + 1;
-        let octaves = self.high_octaves();
-        let mut caches: Vec<CachedNoise> = octaves.iter().map(|o| CachedNoise::new(o.0)).collect();
+        let mut octaves = self.high_octaves();
         let cols: Vec<(usize, usize, f64)> = (0..side)
             .map(|i| {
                 let li = i / LATTICE;
@@ -199,25 +203,38 @@ impl Procedural {
             })
             .collect();
         let mut out = vec![0i16; side * side];
+        // Per sample row: the lattice fields (base elevation, detail gain)
+        // interpolated between the two lattice rows, at each lattice column.
+        let mut base = vec![0f64; n];
+        let mut gain = vec![0f64; n];
         for j in 0..side {
             let (lj, fj) = (j / LATTICE, (j % LATTICE) as f64 / LATTICE as f64);
             let lj1 = (lj + 1).min(n - 1);
             let (r0, r1) = (&lat[lj * n..lj * n + n], &lat[lj1 * n..lj1 * n + n]);
+            for (k, (bk, gk)) in base.iter_mut().zip(gain.iter_mut()).enumerate() {
+                *bk = r0[k][0] + (r1[k][0] - r0[k][0]) * fj;
+                *gk = r0[k][1] + (r1[k][1] - r0[k][1]) * fj;
+            }
+            let (mut px, mut py, mut pz) = ([0f64; ROW], [0f64; ROW], [0f64; ROW]);
+            for i in 0..ROW {
+                [px[i], py[i], pz[i]] = b.face.cube_point(us[i], vs[j]);
+            }
+            for i in 0..ROW {
+                let r = 1.0 / (px[i] * px[i] + py[i] * py[i] + pz[i] * pz[i]).sqrt();
+                px[i] *= r;
+                py[i] *= r;
+                pz[i] *= r;
+            }
+            let mut hi = [0f32; ROW];
+            for oct in octaves.iter_mut() {
+                oct.add_row(&px, &py, &pz, &mut hi);
+            }
             let row = &mut out[j * side..(j + 1) * side];
             for (i, o) in row.iter_mut().enumerate() {
                 let (li, li1, fi) = cols[i];
-                let interp = |c: usize| {
-                    let a = r0[li][c] + (r0[li1][c] - r0[li][c]) * fi;
-                    let d = r1[li][c] + (r1[li1][c] - r1[li][c]) * fi;
-                    a + (d - a) * fj
-                };
-                let p = normalize(b.face.cube_point(us[i], vs[j]));
-                let mut hi = 0.0;
-                for (cache, &(_, f, a)) in caches.iter_mut().zip(&octaves) {
-                    hi += a * cache.eval(scale(p, f));
-                }
-                let h = interp(0) + interp(1) * hi;
-                *o = round_half_away(h).clamp(-8000.0, 8000.0) as i16;
+                let h0 = base[li] + (base[li1] - base[li]) * fi;
+                let g = gain[li] + (gain[li1] - gain[li]) * fi;
+                *o = round_to_i16(h0 + g * hi[i] as f64);
             }
         }
         (out, lat)
@@ -253,10 +270,13 @@ impl Procedural {
         full
     }
 
-    /// The colour grid of a leaf from its elevation grid. The per-texel
-    /// position arithmetic is done once per column and per row, the lattice
-    /// fields' horizontal interpolation once per lattice row band; the
-    /// arithmetic of each value is exactly the per-texel original's.
+    /// The colour grid of a leaf from its elevation grid, a texel row at a
+    /// time: the inputs of every texel (bilinear elevation, moisture,
+    /// latitude, slope) go into per-row arrays, then the branch-free f32
+    /// [`palette`] runs over the row (it vectorises). The per-texel position
+    /// arithmetic is done once per column and per row, the lattice fields'
+    /// horizontal interpolation once per lattice row band, the elevation's
+    /// vertical interpolation once per grid column.
     fn colour_for(&self, b: BlockId, elev: &[i16]) -> Vec<Rgb> {
         let (us, vs) = plane_axes(b);
         let n = EW / LATTICE + 1;
@@ -272,15 +292,14 @@ impl Procedural {
             }
         }
         let side = EW + 1;
-        let mut out = Vec::with_capacity(CW * CW);
         let ratio = EW as f64 / CW as f64;
         let l = b.level as i32;
-        let slope_scale = 2.0f64.powi(-l) * 1.0e5;
+        let inv_slope_scale = (2.0f64.powi(l) * 1.0e-5) as f32;
         // Texel centre position in grid cells and lattice cells, per column
         // (and the same per row).
         struct Axis {
             x0: usize,
-            fx: f64,
+            fx: f32,
             mi: usize,
             mfx: f64,
         }
@@ -289,49 +308,73 @@ impl Procedural {
             let m = g / LATTICE as f64;
             let mi = (m.floor() as usize).min(n - 2);
             Axis {
-                x0: g.floor() as usize,
-                fx: g.fract(),
+                x0: (g.floor() as usize).min(EW - 1),
+                fx: g.fract() as f32,
                 mi,
                 mfx: m - mi as f64,
             }
         };
         let cols: Vec<Axis> = (0..CW).map(axis).collect();
+        // Texel columns 2m and 2m + 1 lie in elevation cell m (CW = 2·EW):
+        // per-column arrays are kept de-interleaved, even columns first
+        // (position m), then odd ones (position H + m), so that a row needs
+        // no gather.
+        const H: usize = CW / 2;
+        const _: () = assert!(CW == 2 * EW);
+        let pos = |k: usize| (k % 2) * H + k / 2;
+        let (fx_even, fx_odd) = (cols[0].fx, cols[1].fx);
         // Per lattice row band `mj`: for each column, the horizontally
         // interpolated moisture and latitude on lattice rows mj and mj + 1.
         let mut band = usize::MAX;
-        let mut hm = vec![[0f64; 4]; CW];
-        for j in 0..CW {
+        let (mut m0, mut m1) = ([0f32; CW], [0f32; CW]);
+        let (mut t0, mut t1) = ([0f32; CW], [0f32; CW]);
+        let mut out = vec![[0u8; 3]; CW * CW];
+        for (j, orow) in out.chunks_exact_mut(CW).enumerate() {
             let ra = axis(j);
-            let (y0, fy, mj, mfy) = (ra.x0, ra.fx, ra.mi, ra.mfx);
+            let (y0, fy, mj, mfy) = (ra.x0, ra.fx, ra.mi, ra.mfx as f32);
             if mj != band {
                 band = mj;
-                for (c, h) in cols.iter().zip(hm.iter_mut()) {
+                for (k, c) in cols.iter().enumerate() {
                     let (mi, mfx) = (c.mi, c.mfx);
                     let row = |g: &[f64], r: usize| {
-                        g[r * n + mi] + (g[r * n + mi + 1] - g[r * n + mi]) * mfx
+                        (g[r * n + mi] + (g[r * n + mi + 1] - g[r * n + mi]) * mfx) as f32
                     };
-                    *h = [
-                        row(&moist, mj),
-                        row(&moist, mj + 1),
-                        row(&lats, mj),
-                        row(&lats, mj + 1),
-                    ];
+                    let q = pos(k);
+                    m0[q] = row(&moist, mj);
+                    m1[q] = row(&moist, mj + 1);
+                    t0[q] = row(&lats, mj);
+                    t1[q] = row(&lats, mj + 1);
                 }
             }
             let e0 = &elev[y0 * side..(y0 + 1) * side];
             let e1 = &elev[(y0 + 1) * side..(y0 + 2) * side];
-            for (c, h4) in cols.iter().zip(&hm) {
-                let (x0, fx) = (c.x0, c.fx);
-                let (a00, a10) = (e0[x0] as f64, e0[x0 + 1] as f64);
-                let (a01, a11) = (e1[x0] as f64, e1[x0 + 1] as f64);
-                let top = a00 + (a10 - a00) * fx;
-                let bot = a01 + (a11 - a01) * fx;
-                let h = top + (bot - top) * fy;
-                let m = h4[0] + (h4[1] - h4[0]) * mfy;
-                let lat = h4[2] + (h4[3] - h4[2]) * mfy;
-                // Slope (for rock on steep terrain), from the elevation grid.
-                let slope = ((a10 - a00).abs() + (a01 - a00).abs()) / slope_scale;
-                out.push(palette(h, lat, m, slope));
+            // Elevation between the two grid rows, per grid column, and the
+            // slope of each grid cell (for rock on steep terrain).
+            let mut v = [0f32; EW + 1];
+            for (vi, (&a, &c)) in v.iter_mut().zip(e0.iter().zip(e1)) {
+                let (a, c) = (a as f32, c as f32);
+                *vi = a + (c - a) * fy;
+            }
+            let mut h = [0f32; CW];
+            let mut slope = [0f32; CW];
+            for m in 0..H {
+                let d = v[m + 1] - v[m];
+                h[m] = v[m] + d * fx_even;
+                h[H + m] = v[m] + d * fx_odd;
+                let a00 = e0[m] as f32;
+                slope[m] =
+                    ((e0[m + 1] as f32 - a00).abs() + (e1[m] as f32 - a00).abs()) * inv_slope_scale;
+                slope[H + m] = slope[m];
+            }
+            let (mut r, mut g, mut bl) = ([0f32; CW], [0f32; CW], [0f32; CW]);
+            for q in 0..CW {
+                let m = m0[q] + (m1[q] - m0[q]) * mfy;
+                let lat = t0[q] + (t1[q] - t0[q]) * mfy;
+                [r[q], g[q], bl[q]] = palette(h[q], lat, m, slope[q]);
+            }
+            for (m, o) in orow.chunks_exact_mut(2).enumerate() {
+                o[0] = [to_u8(r[m]), to_u8(g[m]), to_u8(bl[m])];
+                o[1] = [to_u8(r[H + m]), to_u8(g[H + m]), to_u8(bl[H + m])];
             }
         }
         out
@@ -350,8 +393,8 @@ fn plane_axes(b: BlockId) -> (Vec<f64>, Vec<f64>) {
     (us, vs)
 }
 
-fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
-    let t = t.clamp(0.0, 1.0);
+#[inline(always)]
+fn lerp3(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
     [
         a[0] + (b[0] - a[0]) * t,
         a[1] + (b[1] - a[1]) * t,
@@ -359,55 +402,78 @@ fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
     ]
 }
 
-/// [`lerp3`] that skips the arithmetic where `t ≤ 0` (the result is then `a`
-/// exactly: `a + (b − a)·0 = a` for finite `a`), which is most texels for
-/// most of the palette's layers.
+/// `x` clamped to `[0, 1]` (selects, no NaN handling: inputs are finite).
 #[inline(always)]
-fn blend(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
-    if t > 0.0 {
-        lerp3(a, b, t)
+fn sat(x: f32) -> f32 {
+    let x = if x < 0.0 { 0.0 } else { x };
+    if x > 1.0 {
+        1.0
     } else {
-        a
+        x
     }
 }
 
-/// `smoothstep(a, b, x)` where `x ≤ a` is 0 without the division (exactly
-/// what the clamp makes of it).
+/// `smoothstep(a, a + 1/inv, x)`.
 #[inline(always)]
-fn step_from(a: f64, b: f64, x: f64) -> f64 {
-    if x <= a {
-        0.0
-    } else {
-        smoothstep(a, b, x)
-    }
+fn step32(a: f32, inv: f32, x: f32) -> f32 {
+    let t = sat((x - a) * inv);
+    t * t * (3.0 - 2.0 * t)
 }
 
-/// Colour by altitude (m), |latitude| (degrees), moisture and slope.
-fn palette(h: f64, lat: f64, moisture: f64, slope: f64) -> Rgb {
-    let c = if h < 0.0 {
-        lerp3([46.0, 110.0, 170.0], [8.0, 24.0, 72.0], -h / 6000.0)
-    } else if h < 25.0 {
-        [214.0, 200.0, 150.0]
-    } else {
-        let arid = step_from(0.0, 0.3, 1.0 - (lat - 24.0).abs() / 14.0 - moisture * 1.5);
-        let green = lerp3([52.0, 110.0, 44.0], [96.0, 128.0, 64.0], h / 2000.0);
-        let mut c = blend(green, [204.0, 172.0, 112.0], arid);
-        c = blend(c, [120.0, 122.0, 96.0], step_from(50.0, 66.0, lat)); // tundra
-        c = blend(
-            c,
-            [118.0, 106.0, 96.0],
-            step_from(2200.0, 3200.0, h).max(slope.min(1.0) * 0.6),
-        );
-        let snowline = 5200.0 - 4200.0 * (lat / 75.0).min(1.0);
-        blend(
-            c,
-            [244.0, 245.0, 250.0],
-            step_from(snowline, snowline + 400.0, h),
-        )
-    };
-    let ice = step_from(72.0, 78.0, lat + moisture * 4.0);
-    let c = blend(c, [236.0, 242.0, 248.0], ice);
-    [c[0] as u8, c[1] as u8, c[2] as u8]
+/// A colour channel in `[0, 255]` to the nearest byte, without a
+/// float-to-int cast (it vectorises): `1.5 · 2^23` rounds to an integer.
+#[inline(always)]
+fn to_u8(c: f32) -> u8 {
+    const M: f32 = 12_582_912.0;
+    let c = if c < 0.0 { 0.0 } else { c };
+    let c = if c > 255.0 { 255.0 } else { c };
+    (c + M).to_bits() as u8
+}
+
+/// Colour by altitude (m), |latitude| (degrees), moisture and slope, as
+/// channel values in `[0, 255]`. Branch-free: every layer is computed and the
+/// water/beach/land choice is a select, so a row of texels vectorises.
+#[inline(always)]
+fn palette(h: f32, lat: f32, moisture: f32, slope: f32) -> [f32; 3] {
+    let ocean = lerp3(
+        [46.0, 110.0, 170.0],
+        [8.0, 24.0, 72.0],
+        sat(h * (-1.0 / 6000.0)),
+    );
+    let arid = step32(
+        0.0,
+        1.0 / 0.3,
+        1.0 - (lat - 24.0).abs() * (1.0 / 14.0) - moisture * 1.5,
+    );
+    let green = lerp3(
+        [52.0, 110.0, 44.0],
+        [96.0, 128.0, 64.0],
+        sat(h * (1.0 / 2000.0)),
+    );
+    let mut c = lerp3(green, [204.0, 172.0, 112.0], arid);
+    c = lerp3(c, [120.0, 122.0, 96.0], step32(50.0, 1.0 / 16.0, lat)); // tundra
+    let rock = step32(2200.0, 1.0 / 1000.0, h);
+    let steep = if slope < 1.0 { slope } else { 1.0 } * 0.6;
+    c = lerp3(
+        c,
+        [118.0, 106.0, 96.0],
+        if steep > rock { steep } else { rock },
+    );
+    let snowline = 5200.0 - 4200.0 * sat(lat * (1.0 / 75.0));
+    c = lerp3(c, [244.0, 245.0, 250.0], step32(snowline, 1.0 / 400.0, h));
+    let beach = [214.0, 200.0, 150.0];
+    let mut out = [0f32; 3];
+    for k in 0..3 {
+        out[k] = if h < 0.0 {
+            ocean[k]
+        } else if h < 25.0 {
+            beach[k]
+        } else {
+            c[k]
+        };
+    }
+    let ice = step32(72.0, 1.0 / 6.0, lat + moisture * 4.0);
+    lerp3(out, [236.0, 242.0, 248.0], ice)
 }
 
 impl GridSource for Procedural {
@@ -438,25 +504,6 @@ impl GridSource for Procedural {
             "procedural planet: seed {}, {} levels, {:?}",
             self.seed, self.levels, self.datum
         )
-    }
-}
-
-/// `f64::round` (half away from zero) without the libm call, for the values
-/// the generator produces; identical to `round` for |x| < 2^52, and beyond
-/// that both clamp to the same stored value.
-#[inline]
-fn round_half_away(x: f64) -> f64 {
-    if x.abs() >= 4_503_599_627_370_496.0 || x.is_nan() {
-        return x.round();
-    }
-    let t = x as i64 as f64; // truncation, exact here
-    let d = x - t; // exact (Sterbenz)
-    if d >= 0.5 {
-        t + 1.0
-    } else if d <= -0.5 {
-        t - 1.0
-    } else {
-        t
     }
 }
 
@@ -583,35 +630,173 @@ pub fn noise(seed: u64, p: [f64; 3]) -> f64 {
     noise_in_cell(&c, p[0] - xf, p[1] - yf, p[2] - zf)
 }
 
-/// [`noise`] of one seed that keeps the corner hashes of the last cell it
-/// was evaluated in: neighbouring samples mostly fall in the same cell.
-/// Bit-identical to [`noise`].
+/// Samples in a row of a leaf's elevation grid.
+const ROW: usize = EW + 1;
+
+/// One per-sample detail octave: 3D gradient noise of the direction scaled
+/// by `f`, times the amplitude, evaluated a row of samples at a time in three
+/// passes so that the arithmetic vectorises:
+///
+/// 1. the lattice cell (f64, exact at any depth the builder allows: cells
+///    stay below 2^31) and the position in it (f32) of every sample;
+/// 2. a scalar pass that hashes the 8 corners of a cell only when the cell
+///    changes (neighbouring samples mostly share it) and gives every sample
+///    its cell's gradients packed in one word;
+/// 3. the noise inside the cell, in f32, from the packed gradients.
+///
+/// The gradients are the 8 cube diagonals `(±1, ±1, ±1)`, so a corner's dot
+/// product is `±x ± y ± z`, three sign-bit flips taken straight from the
+/// hash bits (no table gather). The corner hash is a 32-bit integer mix.
+/// Every step is a function of the sample's direction alone, so samples with
+/// bit-identical directions (shared block and face edges) agree exactly.
 #[derive(Debug, Clone)]
-struct CachedNoise {
-    seed: u64,
-    cell: Option<[i64; 3]>,
-    codes: [u8; 8],
+struct DetailOctave {
+    seed: u32,
+    f: f64,
+    amp: f32,
+    cell: [i32; 3],
+    code: u32,
 }
 
-impl CachedNoise {
-    fn new(seed: u64) -> CachedNoise {
-        CachedNoise {
-            seed,
-            cell: None,
-            codes: [0; 8],
-        }
+impl DetailOctave {
+    fn new(seed: u64, f: f64, a: f64) -> DetailOctave {
+        let mut o = DetailOctave {
+            seed: fold_seed(seed),
+            f,
+            // The noise's 0.9 scale folded into the amplitude.
+            amp: (a * 0.9) as f32,
+            cell: [0; 3],
+            code: 0,
+        };
+        o.set_cell([0; 3]);
+        o
     }
 
-    #[inline]
-    fn eval(&mut self, p: [f64; 3]) -> f64 {
-        let (xf, yf, zf) = (ffloor(p[0]), ffloor(p[1]), ffloor(p[2]));
-        let cell = [xf as i64, yf as i64, zf as i64];
-        if self.cell != Some(cell) {
-            self.codes = corner_codes(self.seed, cell[0], cell[1], cell[2]);
-            self.cell = Some(cell);
+    /// The packed gradient signs of the corners of `cell`: bits `3k..3k+3`
+    /// are corner `k`'s (x, y, z) signs (1 = negative), corners in the order
+    /// `(dx, dy, dz)` = 000, 100, 010, 110, 001, 101, 011, 111.
+    fn set_cell(&mut self, cell: [i32; 3]) {
+        self.cell = cell;
+        let (x, y, z) = (cell[0] as u32, cell[1] as u32, cell[2] as u32);
+        let hx = [
+            x.wrapping_mul(0x9E37_79B1),
+            x.wrapping_add(1).wrapping_mul(0x9E37_79B1),
+        ];
+        let hy = [
+            y.wrapping_mul(0x85EB_CA77),
+            y.wrapping_add(1).wrapping_mul(0x85EB_CA77),
+        ];
+        let hz = [
+            z.wrapping_mul(0xC2B2_AE3D),
+            z.wrapping_add(1).wrapping_mul(0xC2B2_AE3D),
+        ];
+        let mut code = 0u32;
+        for k in 0..8 {
+            let h = mix32(self.seed ^ hx[k & 1] ^ hy[(k >> 1) & 1] ^ hz[k >> 2]);
+            code |= (h >> 29) << (3 * k);
         }
-        noise_in_cell(&self.codes, p[0] - xf, p[1] - yf, p[2] - zf)
+        self.code = code;
     }
+
+    /// Add `amplitude · noise(f·p)` of the row's directions to `acc`.
+    fn add_row(&mut self, px: &[f64; ROW], py: &[f64; ROW], pz: &[f64; ROW], acc: &mut [f32; ROW]) {
+        let f = self.f;
+        let mut cx = [0i32; ROW];
+        let mut cy = [0i32; ROW];
+        let mut cz = [0i32; ROW];
+        let mut fx = [0f32; ROW];
+        let mut fy = [0f32; ROW];
+        let mut fz = [0f32; ROW];
+        for i in 0..ROW {
+            (cx[i], fx[i]) = cell_of(px[i] * f);
+            (cy[i], fy[i]) = cell_of(py[i] * f);
+            (cz[i], fz[i]) = cell_of(pz[i] * f);
+        }
+        let mut codes = [0u32; ROW];
+        for i in 0..ROW {
+            let c = [cx[i], cy[i], cz[i]];
+            if c != self.cell {
+                self.set_cell(c);
+            }
+            codes[i] = self.code;
+        }
+        let amp = self.amp;
+        for i in 0..ROW {
+            acc[i] += amp * noise_diag(codes[i], fx[i], fy[i], fz[i]);
+        }
+    }
+}
+
+/// `1.5 · 2^52`: `x + MAGIC` rounds `x` to an integer (nearest, ties to
+/// even) for |x| < 2^51, and the low 32 bits of the sum are that integer.
+const MAGIC: f64 = 6_755_399_441_055_744.0;
+
+/// The lattice cell of a coordinate (|x| < 2^31) and the position in it, in
+/// `[0, 1)`, with adds, compares and bit operations only (they vectorise;
+/// a float-to-int cast does not).
+#[inline(always)]
+fn cell_of(x: f64) -> (i32, f32) {
+    let m = x + MAGIC;
+    let r = m - MAGIC; // round(x), exact
+    let down = r > x;
+    let xf = if down { r - 1.0 } else { r };
+    (
+        (m.to_bits() as u32 as i32).wrapping_sub(down as i32),
+        (x - xf) as f32,
+    )
+}
+
+/// `x` (|x| ≤ 8000 here) rounded to the nearest integer, ties to even,
+/// without a float-to-int cast (it vectorises).
+#[inline(always)]
+fn round_to_i16(x: f64) -> i16 {
+    (x.clamp(-8000.0, 8000.0) + MAGIC).to_bits() as u16 as i16
+}
+
+/// `v` with its sign flipped where bit `k` of `code` is set.
+#[inline(always)]
+fn flip(v: f32, code: u32, k: u32) -> f32 {
+    f32::from_bits(v.to_bits() ^ ((code >> k) << 31))
+}
+
+/// Gradient noise in a cell from its packed corner gradients (see
+/// [`DetailOctave::set_cell`]) and the position in it, in about [-1, 1]
+/// before the 0.9 scale.
+#[inline(always)]
+fn noise_diag(code: u32, x: f32, y: f32, z: f32) -> f32 {
+    let (x1, y1, z1) = (x - 1.0, y - 1.0, z - 1.0);
+    let d = |k: u32, x: f32, y: f32, z: f32| {
+        flip(x, code, 3 * k) + flip(y, code, 3 * k + 1) + flip(z, code, 3 * k + 2)
+    };
+    let (u, v, w) = (fade32(x), fade32(y), fade32(z));
+    let l = |a: f32, b: f32, t: f32| a + (b - a) * t;
+    let x00 = l(d(0, x, y, z), d(1, x1, y, z), u);
+    let x10 = l(d(2, x, y1, z), d(3, x1, y1, z), u);
+    let x01 = l(d(4, x, y, z1), d(5, x1, y, z1), u);
+    let x11 = l(d(6, x, y1, z1), d(7, x1, y1, z1), u);
+    // The diagonals are √3 long where the 12 edge gradients were √2: scale
+    // to keep the octave's amplitude.
+    l(l(x00, x10, v), l(x01, x11, v), w) * 0.816_496_6
+}
+
+#[inline(always)]
+fn fade32(t: f32) -> f32 {
+    t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
+}
+
+/// A 64-bit seed folded to 32 bits and mixed.
+fn fold_seed(s: u64) -> u32 {
+    mix32((s ^ (s >> 32)) as u32 ^ 0x2545_F491)
+}
+
+/// A 32-bit integer finaliser (two multiply–xorshift rounds).
+#[inline(always)]
+fn mix32(mut h: u32) -> u32 {
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x7FEB_352D);
+    h ^= h >> 15;
+    h = h.wrapping_mul(0x846C_A68B);
+    h ^ (h >> 16)
 }
 
 /// Fractal Brownian motion, `octaves` octaves, lacunarity 2, gain 0.5.
@@ -682,6 +867,82 @@ mod tests {
                 assert_eq!(edge(&ga, e), edge(&gb, back), "{b:?} {e:?}");
             }
         }
+    }
+
+    #[test]
+    fn cell_and_rounding_helpers_are_exact() {
+        for &x in &[
+            0.0,
+            -0.0,
+            0.25,
+            -0.25,
+            1.0,
+            -1.0,
+            2.5,
+            -2.5,
+            1e-300,
+            -1e-300,
+            0.999_999_999_999,
+            -0.999_999_999_999,
+            12_345.678,
+            -12_345.678,
+            1_073_741_823.5,
+            -1_073_741_824.0,
+            2_000_000_000.75,
+            -2_000_000_000.75,
+        ] {
+            let (c, f) = cell_of(x);
+            assert_eq!(c as f64, x.floor(), "cell of {x}");
+            assert_eq!(f, (x - x.floor()) as f32, "position of {x}");
+        }
+        for &x in &[
+            0.0, 0.4, 0.6, -0.4, -0.6, 1.5, 2.5, -1.5, 7999.6, -7999.6, 1e9, -1e9,
+        ] {
+            let r = round_to_i16(x);
+            let want = x.clamp(-8000.0, 8000.0).round_ties_even();
+            assert_eq!(r as f64, want, "round {x}");
+        }
+        for &c in &[0.0, 0.4, 0.6, 254.5, 255.0, 300.0, -3.0] {
+            assert_eq!(to_u8(c) as f32, c.clamp(0.0, 255.0).round_ties_even());
+        }
+    }
+
+    #[test]
+    #[allow(clippy::needless_range_loop)] // `i` indexes the octaves' rows
+    fn detail_noise_is_continuous_and_bounded() {
+        // A row of directions finely spaced across many cells of the finest
+        // octave: neighbouring values differ by at most a Lipschitz bound,
+        // so the noise has no jumps at cell boundaries.
+        let g = gen(6);
+        let mut octs = g.high_octaves();
+        let step = 1.0e-5;
+        let mut prev: Option<[f32; HIGH_OCTAVES as usize]> = None;
+        let mut spread = 0f32;
+        for r in 0..200 {
+            let (mut px, mut py, mut pz) = ([0f64; ROW], [0f64; ROW], [0f64; ROW]);
+            for i in 0..ROW {
+                let t = (r * ROW + i) as f64 * step - 0.05;
+                [px[i], py[i], pz[i]] = normalize([t, 0.3 + 0.5 * t, 1.0]);
+            }
+            let mut vals = [[0f32; ROW]; HIGH_OCTAVES as usize];
+            for (o, v) in octs.iter_mut().zip(vals.iter_mut()) {
+                o.add_row(&px, &py, &pz, v);
+            }
+            for i in 0..ROW {
+                let cur: [f32; HIGH_OCTAVES as usize] = std::array::from_fn(|k| vals[k][i]);
+                if let Some(p) = prev {
+                    for (k, o) in octs.iter().enumerate() {
+                        // |∇noise| ≤ ~3 per cell; the step is f·step cells.
+                        let bound = o.amp * 4.0 * (o.f * step * 1.2) as f32 + 1e-4;
+                        assert!((cur[k] - p[k]).abs() <= bound, "octave {k} jumps");
+                        assert!(cur[k].abs() <= o.amp * 1.2, "octave {k} out of range");
+                        spread = spread.max(cur[k].abs() / o.amp);
+                    }
+                }
+                prev = Some(cur);
+            }
+        }
+        assert!(spread > 0.3, "noise too flat: {spread}");
     }
 
     #[test]
