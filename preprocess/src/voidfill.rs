@@ -13,8 +13,13 @@
 //! still shapes the interior of large voids.
 //!
 //! Solver: a push-pull pyramid (mean of valid children going up, the parent
-//! value coming down) gives a smooth first guess in O(n); successive
-//! over-relaxation on the void cells then converges to the harmonic fill.
+//! value coming down) gives a smooth first guess in O(n); multigrid V-cycles
+//! on the void cells (Gauss-Seidel smoothing, residuals summed onto 2×2
+//! coarser cells with the Galerkin scale, corrections carried back piecewise
+//! constant) then converge
+//! to the harmonic fill in a few dozen O(n) cycles, where successive
+//! over-relaxation alone needed thousands of sweeps over a large void (76 %
+//! of a real-data build's CPU time); Gauss-Seidel sweeps polish the result.
 
 /// Fill the NaN cells of `grid` (`w` × `h`, row-major) in place. The cells
 /// listed in `voids` (all NaN) take the harmonic interpolation of the finite
@@ -28,10 +33,243 @@ pub fn harmonic_fill(grid: &mut [f64], w: usize, h: usize, voids: &[usize]) {
     }
     let init = push_pull(grid, w, h);
     grid.copy_from_slice(&init);
-    // Successive over-relaxation on the void cells only, then plain
-    // Gauss-Seidel sweeps (exact for an isolated void cell).
-    relax(grid, w, h, voids, 1.85, 20_000, 1e-4);
-    relax(grid, w, h, voids, 1.0, 200, 1e-6);
+    if !multigrid(grid, w, h, voids, 1e-6, 200) {
+        // Fallback (a NaN next to a void, or no convergence): successive
+        // over-relaxation on the void cells, then plain Gauss-Seidel sweeps.
+        relax(grid, w, h, voids, 1.85, 20_000, 1e-4);
+        relax(grid, w, h, voids, 1.0, 200, 1e-6);
+    }
+}
+
+/// No unknown (a fixed cell, or outside the window).
+const NONE: u32 = u32::MAX;
+
+/// The unknowns (void cells) of one multigrid level, stored compactly: per
+/// unknown, its count of in-window 4-neighbours (Neumann at the window's
+/// edge) and which of those neighbours are unknowns too; the others hold
+/// fixed values (Dirichlet). Memory is about 24 bytes per void cell, plus a
+/// transient 4-byte index per window cell while a level is built.
+struct Level {
+    n: Vec<u8>,
+    nbr: Vec<[u32; 4]>,
+    /// Per unknown: its unknown on the next coarser level.
+    parent: Vec<u32>,
+    coarse: Option<Box<Level>>,
+}
+
+impl Level {
+    /// The level of the unknowns `cells` (grid indices) of a `w` × `h`
+    /// window, and recursively its coarser levels (2×2 cells per coarse
+    /// cell, which is an unknown when any of its cells is).
+    fn build(w: usize, h: usize, cells: &[usize]) -> Level {
+        let mut idx = vec![NONE; w * h];
+        for (k, &i) in cells.iter().enumerate() {
+            idx[i] = k as u32;
+        }
+        let mut n = Vec::with_capacity(cells.len());
+        let mut nbr = Vec::with_capacity(cells.len());
+        for &i in cells {
+            let (x, y) = (i % w, i / w);
+            let (mut count, mut nb, mut m) = (0u8, [NONE; 4], 0);
+            for j in [
+                (x > 0).then(|| i - 1),
+                (x + 1 < w).then(|| i + 1),
+                (y > 0).then(|| i - w),
+                (y + 1 < h).then(|| i + w),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                count += 1;
+                if idx[j] != NONE {
+                    nb[m] = idx[j];
+                    m += 1;
+                }
+            }
+            n.push(count);
+            nbr.push(nb);
+        }
+        drop(idx);
+        if cells.len() <= 4 || (w <= 2 && h <= 2) {
+            return Level {
+                n,
+                nbr,
+                parent: vec![],
+                coarse: None,
+            };
+        }
+        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+        let mut cidx = vec![NONE; cw * ch];
+        let mut ccells = Vec::new();
+        let mut parent = Vec::with_capacity(cells.len());
+        for &i in cells {
+            let c = (i / w / 2) * cw + (i % w) / 2;
+            if cidx[c] == NONE {
+                cidx[c] = ccells.len() as u32;
+                ccells.push(c);
+            }
+            parent.push(cidx[c]);
+        }
+        drop(cidx);
+        let coarse = Level::build(cw, ch, &ccells);
+        Level {
+            n,
+            nbr,
+            parent,
+            coarse: Some(Box::new(coarse)),
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.n.len()
+    }
+
+    /// `Σ e_j` over the unknown neighbours of unknown `k`.
+    fn neighbour_sum(&self, e: &[f64], k: usize) -> f64 {
+        self.nbr[k]
+            .iter()
+            .take_while(|&&j| j != NONE)
+            .map(|&j| e[j as usize])
+            .sum()
+    }
+
+    /// `n·e_k − Σ e_j` (fixed neighbours hold 0).
+    fn apply(&self, e: &[f64], k: usize) -> f64 {
+        self.n[k] as f64 * e[k] - self.neighbour_sum(e, k)
+    }
+
+    fn relax_one(&self, e: &mut [f64], rhs: &[f64], k: usize) {
+        if self.n[k] > 0 {
+            e[k] = (rhs[k] + self.neighbour_sum(e, k)) / self.n[k] as f64;
+        }
+    }
+
+    /// Gauss-Seidel sweeps on `n·e_k − Σ e_j = rhs_k`, forward or
+    /// (`backward`) in reverse order, so that a V-cycle is symmetric.
+    fn smooth(&self, e: &mut [f64], rhs: &[f64], sweeps: usize, backward: bool) {
+        for s in 0..sweeps {
+            if backward ^ (s % 2 == 1) {
+                for k in (0..self.len()).rev() {
+                    self.relax_one(e, rhs, k);
+                }
+            } else {
+                for k in 0..self.len() {
+                    self.relax_one(e, rhs, k);
+                }
+            }
+        }
+    }
+
+    /// One symmetric V-cycle for `e` (error equation with right-hand side
+    /// `rhs`, `e` starting at 0): the preconditioner of [`multigrid`].
+    fn v_cycle(&self, e: &mut [f64], rhs: &[f64]) {
+        const SWEEPS: usize = 2;
+        let Some(coarse) = &self.coarse else {
+            self.smooth(e, rhs, 50, false);
+            return;
+        };
+        self.smooth(e, rhs, SWEEPS, false);
+        // Summed, then halved: with piecewise-constant prolongation the
+        // Galerkin coarse operator R·A·P is twice the 5-point stencil, so the
+        // coarse level solves the stencil for half the summed residual.
+        let mut crhs = vec![0f64; coarse.len()];
+        for k in 0..self.len() {
+            crhs[self.parent[k] as usize] += 0.5 * (rhs[k] - self.apply(e, k));
+        }
+        let mut ce = vec![0f64; coarse.len()];
+        coarse.v_cycle(&mut ce, &crhs);
+        for k in 0..self.len() {
+            e[k] += ce[self.parent[k] as usize];
+        }
+        self.smooth(e, rhs, SWEEPS, true);
+    }
+}
+
+/// Conjugate gradients preconditioned by one multigrid V-cycle, for the
+/// harmonic fill of the `voids` of `grid` (whose other cells next to a void
+/// are finite and held fixed), until the largest update of an iteration is
+/// under `tol` (returns `true`) or after `max_iter` (returns `false`).
+///
+/// The unknowns are the void cells; the system `n·x_i − Σ_{void j} x_j =
+/// Σ_{fixed j} u_j` is symmetric positive (semi-)definite, and the V-cycle
+/// (forward Gauss-Seidel down, backward up, Galerkin-scaled piecewise-
+/// constant transfers) is a symmetric preconditioner.
+fn multigrid(
+    grid: &mut [f64],
+    w: usize,
+    h: usize,
+    voids: &[usize],
+    tol: f64,
+    max_iter: usize,
+) -> bool {
+    // r = b − A·x for the current grid: Σ u_j − n·u_i over all neighbours.
+    let mut r: Vec<f64> = voids
+        .iter()
+        .map(|&i| {
+            let (x, y) = (i % w, i / w);
+            let (mut n, mut sum) = (0u32, 0f64);
+            for j in [
+                (x > 0).then(|| i - 1),
+                (x + 1 < w).then(|| i + 1),
+                (y > 0).then(|| i - w),
+                (y + 1 < h).then(|| i + w),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                n += 1;
+                sum += grid[j];
+            }
+            sum - n as f64 * grid[i]
+        })
+        .collect();
+    if r.iter().any(|v| !v.is_finite()) {
+        return false; // a NaN neighbour outside the void: leave it to relax()
+    }
+    let level = Level::build(w, h, voids);
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+    let precondition = |r: &[f64]| {
+        let mut z = vec![0f64; r.len()];
+        level.v_cycle(&mut z, r);
+        z
+    };
+    let mut z = precondition(&r);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut q = vec![0f64; r.len()];
+    for _ in 0..max_iter {
+        if rz == 0.0 {
+            return true; // exact
+        }
+        if !rz.is_finite() {
+            return false;
+        }
+        for (k, qk) in q.iter_mut().enumerate() {
+            *qk = level.apply(&p, k);
+        }
+        let pq = dot(&p, &q);
+        if pq <= 0.0 || !pq.is_finite() {
+            return false;
+        }
+        let alpha = rz / pq;
+        let mut worst = 0f64;
+        for (k, &i) in voids.iter().enumerate() {
+            grid[i] += alpha * p[k];
+            r[k] -= alpha * q[k];
+            worst = worst.max((alpha * p[k]).abs());
+        }
+        if worst < tol {
+            return true;
+        }
+        z = precondition(&r);
+        let rz_new = dot(&r, &z);
+        let beta = rz_new / rz;
+        rz = rz_new;
+        for (pk, zk) in p.iter_mut().zip(&z) {
+            *pk = zk + beta * *pk;
+        }
+    }
+    false
 }
 
 fn relax(
@@ -155,6 +393,34 @@ mod tests {
                 assert!((g[y * w + x] - f(x, y)).abs() < 0.05, "{x},{y}");
             }
         }
+    }
+
+    /// A large void (where SOR alone needed thousands of sweeps): the result
+    /// satisfies the discrete Laplace equation and reproduces a harmonic
+    /// function (x² − y² is harmonic for the 5-point stencil too).
+    #[test]
+    fn large_void_converges_to_the_discrete_harmonic_fill() {
+        let (w, h) = (300, 260);
+        let f = |x: usize, y: usize| {
+            let (x, y) = (x as f64 - 150.0, y as f64 - 130.0);
+            (x * x - y * y) / 50.0 + 0.5 * x
+        };
+        let mut g: Vec<f64> = (0..w * h).map(|i| f(i % w, i / w)).collect();
+        let mut voids = vec![];
+        for y in 20..240 {
+            for x in 30..280 {
+                let i = y * w + x;
+                g[i] = f64::NAN;
+                voids.push(i);
+            }
+        }
+        harmonic_fill(&mut g, w, h, &voids);
+        let mut worst = 0f64;
+        for &i in &voids {
+            let (x, y) = (i % w, i / w);
+            worst = worst.max((g[i] - f(x, y)).abs());
+        }
+        assert!(worst < 1e-3, "max error {worst}");
     }
 
     #[test]
