@@ -493,9 +493,11 @@ async fn serve_request(
             return;
         }
         Err(_) => {
-            let _ = recv.stop(code(ErrorCode::Malformed.to_quic()));
-            let _ = send.reset(code(ErrorCode::Malformed.to_quic()));
-            metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Invalid);
+            // The request never completed: free the stream with its own code
+            // (not `malformed`: nothing invalid was received).
+            let _ = recv.stop(code(ErrorCode::Timeout.to_quic()));
+            let _ = send.reset(code(ErrorCode::Timeout.to_quic()));
+            metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Timeout);
             return;
         }
     };
