@@ -109,6 +109,52 @@ async fn fetches_whole_tree_and_counts_metrics() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_can_share_one_client_endpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let file = file_bytes(&dir.path().join("earth.planetdb"));
+    let h = Server::start(cfg).await.unwrap();
+    let ep = planet_client::net::new_endpoint(h.local_addr()).unwrap();
+    let mut conns = vec![];
+    for _ in 0..3 {
+        let (c, w) = planet_client::net::Connection::connect_on(
+            &ep,
+            h.local_addr(),
+            "localhost",
+            tls_for(&h),
+            acme(),
+            &ConnectOptions::default(),
+        )
+        .await
+        .unwrap();
+        assert_eq!(w.database, "earth");
+        conns.push(c);
+    }
+    assert_eq!(h.active_connections(), 3);
+    for (i, c) in conns.iter().enumerate() {
+        let (off, size) = recs[i % recs.len()];
+        let body = c.fetch(1, off, size).await.unwrap();
+        assert_eq!(&body[..], &file[off as usize..off as usize + size as usize]);
+    }
+    // Closing one connection leaves the others (and the endpoint) usable.
+    conns.remove(0).close();
+    let (off, size) = recs[0];
+    assert_eq!(
+        conns[1].fetch(2, off, size).await.unwrap().len(),
+        size as usize
+    );
+    drop(ep);
+    assert_eq!(
+        conns[0].fetch(3, off, size).await.unwrap().len(),
+        size as usize
+    );
+    for c in &conns {
+        c.close();
+    }
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_requests_get_their_codes_and_the_connection_stays_usable() {
     let dir = tempfile::tempdir().unwrap();
     let (cfg, recs) = two_tenant_config(dir.path());
