@@ -112,6 +112,14 @@ pub struct ServerArgs {
     /// behaviour, and what independent clients on separate hosts do).
     #[arg(long, default_value_t = 1)]
     pub client_endpoints: usize,
+    /// Largest UDP payload the shared client endpoints accept (quinn's
+    /// `max_udp_payload_size` transport parameter; default 1472, an
+    /// Ethernet MTU), also passed to the server as `--max-udp-payload` (its
+    /// path-MTU discovery ceiling, default 1452). On loopback (MTU 65536)
+    /// this is the jumbo-frame counterpart of kernel TCP's 64 kB loopback
+    /// segments; it says nothing about Internet paths.
+    #[arg(long)]
+    pub client_max_udp_payload: Option<u16>,
     /// Open-loop mode: offered load in requests/s over all clients
     /// (comma-separated list: one run per rate, each side). Requests are
     /// issued on a precomputed schedule whatever the responses do, and
@@ -154,6 +162,7 @@ impl Default for ServerArgs {
             server_bin: None,
             client_threads: None,
             client_endpoints: 1,
+            client_max_udp_payload: None,
             rate: vec![],
             arrivals: Arrivals::Poisson,
         }
@@ -341,6 +350,17 @@ pub struct ServerUnderTest {
 impl ServerUnderTest {
     /// Start the server on `db` (127.0.0.1, ephemeral port).
     pub fn start(mode: ServerMode, db: &Path, server_bin: Option<&Path>) -> Result<Self> {
+        Self::start_with(mode, db, server_bin, None)
+    }
+
+    /// [`ServerUnderTest::start`] with a path-MTU discovery ceiling
+    /// (`--max-udp-payload`; the server's default when `None`).
+    pub fn start_with(
+        mode: ServerMode,
+        db: &Path,
+        server_bin: Option<&Path>,
+        max_udp_payload: Option<u16>,
+    ) -> Result<Self> {
         let database = db_name(db)?;
         match mode {
             ServerMode::Subprocess => {
@@ -352,6 +372,11 @@ impl ServerUnderTest {
                     .arg("--database")
                     .arg(db)
                     .args(["--listen", "127.0.0.1:0", "--dev-cert"])
+                    .args(
+                        max_udp_payload
+                            .map(|m| vec!["--max-udp-payload".to_string(), m.to_string()])
+                            .unwrap_or_default(),
+                    )
                     .env(
                         "RUST_LOG",
                         std::env::var("PLANET_BENCH_SERVER_LOG").unwrap_or_else(|_| "warn".into()),
@@ -407,8 +432,11 @@ impl ServerUnderTest {
                     .thread_name("bench-server")
                     .enable_all()
                     .build()?;
-                let cfg =
+                let mut cfg =
                     planet_server::ServerConfig::single_database(db, "127.0.0.1:0".parse()?, "")?;
+                if let Some(m) = max_udp_payload {
+                    cfg.max_udp_payload = m;
+                }
                 let handle = rt.block_on(planet_server::Server::start(cfg))?;
                 Ok(ServerUnderTest {
                     addr: handle.local_addr(),
@@ -521,10 +549,24 @@ pub async fn connect_many_on(
     parallel: usize,
     endpoints: usize,
 ) -> Result<Vec<Connection>> {
+    connect_many_on_with(srv_addr, fingerprint, hello, n, parallel, endpoints, None).await
+}
+
+/// [`connect_many_on`] with endpoints that accept UDP payloads up to
+/// `max_udp_payload` (quinn's default when `None`).
+pub async fn connect_many_on_with(
+    srv_addr: SocketAddr,
+    fingerprint: &str,
+    hello: &Hello,
+    n: usize,
+    parallel: usize,
+    endpoints: usize,
+    max_udp_payload: Option<u16>,
+) -> Result<Vec<Connection>> {
     let tls = planet_client::tls::pinned(fingerprint)?;
     let eps = (0..endpoints.min(n))
-        .map(|_| planet_client::net::new_endpoint(srv_addr))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|_| bench_endpoint(srv_addr, max_udp_payload))
+        .collect::<Result<Vec<_>>>()?;
     let sem = Arc::new(tokio::sync::Semaphore::new(parallel.max(1)));
     let mut set = tokio::task::JoinSet::new();
     for i in 0..n {
@@ -551,6 +593,25 @@ pub async fn connect_many_on(
         out[i] = Some(r.map_err(|e| anyhow!("connection {i}: {e}"))?);
     }
     Ok(out.into_iter().flatten().collect())
+}
+
+/// A client endpoint for the bench: `planet_client::net::new_endpoint`, or
+/// with a larger `max_udp_payload_size` (same 4 MiB socket buffers).
+fn bench_endpoint(peer: SocketAddr, max_udp_payload: Option<u16>) -> Result<quinn::Endpoint> {
+    let Some(max) = max_udp_payload else {
+        return Ok(planet_client::net::new_endpoint(peer)?);
+    };
+    let mut cfg = quinn::EndpointConfig::default();
+    cfg.max_udp_payload_size(max)
+        .map_err(|e| anyhow!("--client-max-udp-payload {max}: {e}"))?;
+    let bind: SocketAddr = if peer.is_ipv6() {
+        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+    } else {
+        (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
+    };
+    let socket = planet_server::udp::bind(bind)?;
+    let runtime = quinn::default_runtime().context("no async runtime for the QUIC endpoint")?;
+    Ok(quinn::Endpoint::new(cfg, None, socket, runtime)?)
 }
 
 // ---------------------------------------------------------------- request list
@@ -970,13 +1031,14 @@ async fn run_quic(
     args: &ServerArgs,
     scheds: &Schedules,
 ) -> Result<Vec<RunResult>> {
-    let conns = connect_many_on(
+    let conns = connect_many_on_with(
         srv.addr,
         &srv.fingerprint,
         &srv.hello(),
         args.clients,
         64,
         args.client_endpoints,
+        args.client_max_udp_payload,
     )
     .await?;
     let pids: Vec<u32> = srv.pid().into_iter().collect();
@@ -1529,7 +1591,12 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
         }
     );
 
-    let mut srv = ServerUnderTest::start(args.server, &db, args.server_bin.as_deref())?;
+    let mut srv = ServerUnderTest::start_with(
+        args.server,
+        &db,
+        args.server_bin.as_deref(),
+        args.client_max_udp_payload,
+    )?;
     let quic = rt.block_on(run_quic(&srv, &reqs, args, &scheds))?;
     srv.stop();
     for q in &quic {

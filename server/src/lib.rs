@@ -310,6 +310,11 @@ fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, Server
     let mut ack = quinn::AckFrequencyConfig::default();
     ack.ack_eliciting_threshold(VarInt::from_u32(10));
     t.ack_frequency_config(Some(ack));
+    // Path-MTU discovery up to the configured ceiling (quinn probes
+    // upwards from 1200 bytes and backs off on black holes).
+    let mut mtu = quinn::MtuDiscoveryConfig::default();
+    mtu.upper_bound(cfg.max_udp_payload);
+    t.mtu_discovery_config(Some(mtu));
     Ok(t)
 }
 

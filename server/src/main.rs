@@ -77,6 +77,10 @@ struct RunArgs {
     /// its SHA-256 fingerprint on stdout.
     #[arg(long, conflicts_with_all = ["cert", "key"])]
     dev_cert: bool,
+    /// Ceiling of QUIC path-MTU discovery in bytes (overrides the config;
+    /// default 1452). Only jumbo-frame networks or loopback gain from more.
+    #[arg(long)]
+    max_udp_payload: Option<u16>,
     /// Log format.
     #[arg(long, value_enum, default_value = "text")]
     log_format: LogFormat,
@@ -145,6 +149,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if let Some(m) = args.metrics {
         cfg.metrics = Some(m);
+    }
+    if let Some(m) = args.max_udp_payload {
+        cfg.max_udp_payload = m;
     }
     if let (Some(c), Some(k)) = (&args.cert, &args.key) {
         cfg.tls = TlsSource::Pem {

@@ -690,6 +690,18 @@ fn config_errors_are_clear() {
     assert!(e.to_string().contains("nope.planetdb"), "{e}");
     let typo = format!("{ok}max_conections = 3\n");
     assert!(ServerConfig::from_toml_str(&typo, dir.path()).is_err());
+    assert_eq!(
+        ServerConfig::from_toml_str(&ok, dir.path())
+            .unwrap()
+            .max_udp_payload,
+        1452
+    );
+    let jumbo = format!("max_udp_payload = 8952\n{ok}");
+    let c = ServerConfig::from_toml_str(&jumbo, dir.path()).unwrap();
+    assert_eq!(c.max_udp_payload, 8952);
+    let tiny = format!("max_udp_payload = 900\n{ok}");
+    let e = ServerConfig::from_toml_str(&tiny, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("max_udp_payload 900"), "{e}");
     // The deploy example parses (paths do not exist here, so only syntax).
     let example = std::fs::read_to_string(
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/server.toml"),
