@@ -31,9 +31,14 @@ echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
 target/release/planet-bench server "${DB_ARGS[@]}" --nginx --nginx-bin "${NGINX:-/usr/sbin/nginx}" "$@"
 RATES="${RATES-1000,2000,3000}"
 if [ -n "$RATES" ]; then
+  # 10 s per rate and side unless the extra arguments give --seconds.
+  SECS=(--seconds 10)
+  for a in "$@"; do
+    case "$a" in --seconds|--seconds=*) SECS=() ;; esac
+  done
   echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
   target/release/planet-bench server "${DB_ARGS[@]}" --nginx --nginx-bin "${NGINX:-/usr/sbin/nginx}" \
-    --rate "$RATES" --seconds 10 "$@"
+    --rate "$RATES" "${SECS[@]}" "$@"
 fi
 if [ "${LOAD:-1}" != 0 ]; then
   echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
