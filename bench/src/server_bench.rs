@@ -107,6 +107,9 @@ pub struct ServerArgs {
     /// Worker threads of the client runtime (default: the number of CPUs).
     #[arg(long)]
     pub client_threads: Option<usize>,
+    /// `planet-server --worker-threads` (default: its own, one per CPU).
+    #[arg(long)]
+    pub server_threads: Option<usize>,
     /// Client QUIC endpoints (UDP sockets) shared by the connections,
     /// round-robin; 0 = one endpoint per connection (the pre-2026-11-22
     /// behaviour, and what independent clients on separate hosts do).
@@ -161,6 +164,7 @@ impl Default for ServerArgs {
             server: ServerMode::Subprocess,
             server_bin: None,
             client_threads: None,
+            server_threads: None,
             client_endpoints: 1,
             client_max_udp_payload: None,
             rate: vec![],
@@ -350,16 +354,18 @@ pub struct ServerUnderTest {
 impl ServerUnderTest {
     /// Start the server on `db` (127.0.0.1, ephemeral port).
     pub fn start(mode: ServerMode, db: &Path, server_bin: Option<&Path>) -> Result<Self> {
-        Self::start_with(mode, db, server_bin, None)
+        Self::start_with(mode, db, server_bin, None, None)
     }
 
     /// [`ServerUnderTest::start`] with a path-MTU discovery ceiling
-    /// (`--max-udp-payload`; the server's default when `None`).
+    /// (`--max-udp-payload`) and worker threads (`--worker-threads`, for a
+    /// subprocess only); the server's defaults when `None`.
     pub fn start_with(
         mode: ServerMode,
         db: &Path,
         server_bin: Option<&Path>,
         max_udp_payload: Option<u16>,
+        server_threads: Option<usize>,
     ) -> Result<Self> {
         let database = db_name(db)?;
         match mode {
@@ -375,6 +381,11 @@ impl ServerUnderTest {
                     .args(
                         max_udp_payload
                             .map(|m| vec!["--max-udp-payload".to_string(), m.to_string()])
+                            .unwrap_or_default(),
+                    )
+                    .args(
+                        server_threads
+                            .map(|n| vec!["--worker-threads".to_string(), n.to_string()])
                             .unwrap_or_default(),
                     )
                     .env(
@@ -1596,6 +1607,7 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
         &db,
         args.server_bin.as_deref(),
         args.client_max_udp_payload,
+        args.server_threads,
     )?;
     let quic = rt.block_on(run_quic(&srv, &reqs, args, &scheds))?;
     srv.stop();
