@@ -9,7 +9,10 @@
 # -c TMP/nginx.conf: TLS 1.3 with a fresh self-signed certificate, sendfile,
 # keep-alive, HTTP/1.1 and HTTP/2, 127.0.0.1 only) and stops it at the end;
 # the generated configuration is the one in bench/src/server_bench.rs
-# (Nginx::start). Set LOAD=0 to skip the load test.
+# (Nginx::start). The closed-loop run (throughput) is followed by an
+# open-loop run at RATES (default 1000,2000,3000 requests/s over the 200
+# clients, Poisson arrivals, latency from the scheduled send time); set
+# RATES= to skip it. Set LOAD=0 to skip the load test.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 cd "$ROOT"
@@ -26,6 +29,17 @@ fi
 cargo build --release -p planet-bench -p planet-server
 echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
 target/release/planet-bench server "${DB_ARGS[@]}" --nginx --nginx-bin "${NGINX:-/usr/sbin/nginx}" "$@"
+RATES="${RATES-1000,2000,3000}"
+if [ -n "$RATES" ]; then
+  # 10 s per rate and side unless the extra arguments give --seconds.
+  SECS=(--seconds 10)
+  for a in "$@"; do
+    case "$a" in --seconds|--seconds=*) SECS=() ;; esac
+  done
+  echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
+  target/release/planet-bench server "${DB_ARGS[@]}" --nginx --nginx-bin "${NGINX:-/usr/sbin/nginx}" \
+    --rate "$RATES" "${SECS[@]}" "$@"
+fi
 if [ "${LOAD:-1}" != 0 ]; then
   echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
   target/release/planet-bench load "${DB_ARGS[@]}"

@@ -107,6 +107,43 @@ pub struct ServerArgs {
     /// Worker threads of the client runtime (default: the number of CPUs).
     #[arg(long)]
     pub client_threads: Option<usize>,
+    /// `planet-server --worker-threads` (default: its own, one per CPU).
+    #[arg(long)]
+    pub server_threads: Option<usize>,
+    /// Client QUIC endpoints (UDP sockets) shared by the connections,
+    /// round-robin; 0 = one endpoint per connection (the pre-2026-11-22
+    /// behaviour, and what independent clients on separate hosts do).
+    #[arg(long, default_value_t = 1)]
+    pub client_endpoints: usize,
+    /// Largest UDP payload the shared client endpoints accept (quinn's
+    /// `max_udp_payload_size` transport parameter; default 1472, an
+    /// Ethernet MTU), also passed to the server as `--max-udp-payload` (its
+    /// path-MTU discovery ceiling, default 1452). On loopback (MTU 65536)
+    /// this is the jumbo-frame counterpart of kernel TCP's 64 kB loopback
+    /// segments; it says nothing about Internet paths.
+    #[arg(long)]
+    pub client_max_udp_payload: Option<u16>,
+    /// Open-loop mode: offered load in requests/s over all clients
+    /// (comma-separated list: one run per rate, each side). Requests are
+    /// issued on a precomputed schedule whatever the responses do, and
+    /// latency counts from the *scheduled* send time, so a stalled server is
+    /// not hidden by fewer requests (no coordinated omission). Without
+    /// `--rate` the run is closed-loop (throughput).
+    #[arg(long, value_delimiter = ',')]
+    pub rate: Vec<f64>,
+    /// Arrival process of the open-loop schedule.
+    #[arg(long, value_enum, default_value = "poisson")]
+    pub arrivals: Arrivals,
+}
+
+/// Arrival process of an open-loop run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Arrivals {
+    /// Seeded Poisson process (exponential gaps), each request to a
+    /// uniformly drawn client: the superposition of independent clients.
+    Poisson,
+    /// Evenly spaced arrivals, clients in turn.
+    Uniform,
 }
 
 impl Default for ServerArgs {
@@ -127,6 +164,11 @@ impl Default for ServerArgs {
             server: ServerMode::Subprocess,
             server_bin: None,
             client_threads: None,
+            server_threads: None,
+            client_endpoints: 1,
+            client_max_udp_payload: None,
+            rate: vec![],
+            arrivals: Arrivals::Poisson,
         }
     }
 }
@@ -312,6 +354,19 @@ pub struct ServerUnderTest {
 impl ServerUnderTest {
     /// Start the server on `db` (127.0.0.1, ephemeral port).
     pub fn start(mode: ServerMode, db: &Path, server_bin: Option<&Path>) -> Result<Self> {
+        Self::start_with(mode, db, server_bin, None, None)
+    }
+
+    /// [`ServerUnderTest::start`] with a path-MTU discovery ceiling
+    /// (`--max-udp-payload`) and worker threads (`--worker-threads`, for a
+    /// subprocess only); the server's defaults when `None`.
+    pub fn start_with(
+        mode: ServerMode,
+        db: &Path,
+        server_bin: Option<&Path>,
+        max_udp_payload: Option<u16>,
+        server_threads: Option<usize>,
+    ) -> Result<Self> {
         let database = db_name(db)?;
         match mode {
             ServerMode::Subprocess => {
@@ -323,6 +378,16 @@ impl ServerUnderTest {
                     .arg("--database")
                     .arg(db)
                     .args(["--listen", "127.0.0.1:0", "--dev-cert"])
+                    .args(
+                        max_udp_payload
+                            .map(|m| vec!["--max-udp-payload".to_string(), m.to_string()])
+                            .unwrap_or_default(),
+                    )
+                    .args(
+                        server_threads
+                            .map(|n| vec!["--worker-threads".to_string(), n.to_string()])
+                            .unwrap_or_default(),
+                    )
                     .env(
                         "RUST_LOG",
                         std::env::var("PLANET_BENCH_SERVER_LOG").unwrap_or_else(|_| "warn".into()),
@@ -378,8 +443,11 @@ impl ServerUnderTest {
                     .thread_name("bench-server")
                     .enable_all()
                     .build()?;
-                let cfg =
+                let mut cfg =
                     planet_server::ServerConfig::single_database(db, "127.0.0.1:0".parse()?, "")?;
+                if let Some(m) = max_udp_payload {
+                    cfg.max_udp_payload = m;
+                }
                 let handle = rt.block_on(planet_server::Server::start(cfg))?;
                 Ok(ServerUnderTest {
                     addr: handle.local_addr(),
@@ -469,7 +537,8 @@ pub fn bench_connect_options() -> ConnectOptions {
     }
 }
 
-/// Open `n` connections, at most `parallel` handshakes at a time.
+/// Open `n` connections, at most `parallel` handshakes at a time, each on
+/// its own client endpoint (UDP socket).
 pub async fn connect_many(
     srv_addr: SocketAddr,
     fingerprint: &str,
@@ -477,23 +546,54 @@ pub async fn connect_many(
     n: usize,
     parallel: usize,
 ) -> Result<Vec<Connection>> {
+    connect_many_on(srv_addr, fingerprint, hello, n, parallel, 0).await
+}
+
+/// Open `n` connections, at most `parallel` handshakes at a time, spread
+/// round-robin over `endpoints` shared client endpoints (0: one endpoint per
+/// connection).
+pub async fn connect_many_on(
+    srv_addr: SocketAddr,
+    fingerprint: &str,
+    hello: &Hello,
+    n: usize,
+    parallel: usize,
+    endpoints: usize,
+) -> Result<Vec<Connection>> {
+    connect_many_on_with(srv_addr, fingerprint, hello, n, parallel, endpoints, None).await
+}
+
+/// [`connect_many_on`] with endpoints that accept UDP payloads up to
+/// `max_udp_payload` (quinn's default when `None`).
+pub async fn connect_many_on_with(
+    srv_addr: SocketAddr,
+    fingerprint: &str,
+    hello: &Hello,
+    n: usize,
+    parallel: usize,
+    endpoints: usize,
+    max_udp_payload: Option<u16>,
+) -> Result<Vec<Connection>> {
     let tls = planet_client::tls::pinned(fingerprint)?;
+    let eps = (0..endpoints.min(n))
+        .map(|_| bench_endpoint(srv_addr, max_udp_payload))
+        .collect::<Result<Vec<_>>>()?;
     let sem = Arc::new(tokio::sync::Semaphore::new(parallel.max(1)));
     let mut set = tokio::task::JoinSet::new();
     for i in 0..n {
         let tls = tls.clone();
         let hello = hello.clone();
         let sem = sem.clone();
+        let ep = (!eps.is_empty()).then(|| eps[i % eps.len()].clone());
         set.spawn(async move {
             let _permit = sem.acquire_owned().await;
-            let r = Connection::connect_with(
-                srv_addr,
-                "localhost",
-                tls,
-                hello,
-                &bench_connect_options(),
-            )
-            .await
+            let opts = bench_connect_options();
+            let r = match ep {
+                Some(ep) => {
+                    Connection::connect_on(&ep, srv_addr, "localhost", tls, hello, &opts).await
+                }
+                None => Connection::connect_with(srv_addr, "localhost", tls, hello, &opts).await,
+            }
             .map(|(c, _)| c);
             (i, r)
         });
@@ -504,6 +604,25 @@ pub async fn connect_many(
         out[i] = Some(r.map_err(|e| anyhow!("connection {i}: {e}"))?);
     }
     Ok(out.into_iter().flatten().collect())
+}
+
+/// A client endpoint for the bench: `planet_client::net::new_endpoint`, or
+/// with a larger `max_udp_payload_size` (same 4 MiB socket buffers).
+fn bench_endpoint(peer: SocketAddr, max_udp_payload: Option<u16>) -> Result<quinn::Endpoint> {
+    let Some(max) = max_udp_payload else {
+        return Ok(planet_client::net::new_endpoint(peer)?);
+    };
+    let mut cfg = quinn::EndpointConfig::default();
+    cfg.max_udp_payload_size(max)
+        .map_err(|e| anyhow!("--client-max-udp-payload {max}: {e}"))?;
+    let bind: SocketAddr = if peer.is_ipv6() {
+        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+    } else {
+        (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
+    };
+    let socket = planet_server::udp::bind(bind)?;
+    let runtime = quinn::default_runtime().context("no async runtime for the QUIC endpoint")?;
+    Ok(quinn::Endpoint::new(cfg, None, socket, runtime)?)
 }
 
 // ---------------------------------------------------------------- request list
@@ -614,6 +733,13 @@ pub struct RunResult {
     pub server_cpu: Option<f64>,
     /// Connections used.
     pub connections: usize,
+    /// CPU seconds of the bench process (the clients) in the window.
+    pub client_cpu: f64,
+    /// Open-loop runs: the offered load (requests/s).
+    pub offered: Option<f64>,
+    /// Open-loop runs: how late the client started requests against their
+    /// schedule (client-side overhead, included in `latency`).
+    pub lag: Option<Latency>,
 }
 
 impl RunResult {
@@ -634,11 +760,20 @@ impl RunResult {
             ),
             None => "n/a (in-process)".into(),
         };
+        let cpu = format!(
+            "{cpu}, client CPU {:.1} µs/request",
+            1e6 * self.client_cpu / self.requests.max(1) as f64
+        );
+        let offered = match self.offered {
+            Some(r) => format!(" (offered {r:.0})"),
+            None => String::new(),
+        };
         println!(
-            "{:<8} {:>5} conns  {:>9.0} req/s  {:>8.1} MB/s  p50 {}  p90 {}  p99 {}  max {}  errors {}  server CPU {}",
+            "{:<8} {:>5} conns  {:>9.0} req/s{}  {:>8.1} MB/s  p50 {}  p90 {}  p99 {}  max {}  errors {}  server CPU {}",
             self.label,
             self.connections,
             self.rps(),
+            offered,
             self.mbps(),
             ms(self.latency.p50),
             ms(self.latency.p90),
@@ -647,6 +782,14 @@ impl RunResult {
             self.errors,
             cpu
         );
+        if let Some(l) = &self.lag {
+            println!(
+                "         client start lag vs schedule: p50 {}  p99 {}  max {}",
+                ms(l.p50),
+                ms(l.p99),
+                ms(l.max)
+            );
+        }
         if let Some(e) = &self.first_error {
             println!("         first error: {e}");
         }
@@ -713,14 +856,239 @@ fn new_cursor(list: &Arc<Vec<Req>>, args: &ServerArgs, start: Instant) -> Arc<Cu
     })
 }
 
+// ---------------------------------------------------------------- open loop
+
+/// One scheduled request of an open-loop run: request `k` of the schedule
+/// is `list[k % len]`, sent at `at` after the start by client `client`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Arrival {
+    /// Send time after the start of the run.
+    pub at: Duration,
+    /// Client (connection group) index.
+    pub client: usize,
+}
+
+/// A seeded schedule of `n` arrivals at `rate` requests/s over `clients`.
+pub fn schedule(
+    rate: f64,
+    n: usize,
+    clients: usize,
+    seed: u64,
+    arrivals: Arrivals,
+) -> Vec<Arrival> {
+    let clients = clients.max(1);
+    let rate = rate.max(1e-3);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x005e_ed0f_a771_7a15);
+    let mut t = 0.0f64;
+    (0..n)
+        .map(|k| match arrivals {
+            Arrivals::Poisson => {
+                // Exponential gap; 1 - u is in (0, 1] so ln is finite.
+                let u: f64 = rng.random();
+                t += -(1.0 - u).ln() / rate;
+                Arrival {
+                    at: Duration::from_secs_f64(t),
+                    client: rng.random_range(0..clients),
+                }
+            }
+            Arrivals::Uniform => Arrival {
+                at: Duration::from_secs_f64(k as f64 / rate),
+                client: k % clients,
+            },
+        })
+        .collect()
+}
+
+type H1Send = hyper::client::conn::http1::SendRequest<http_body_util::Empty<bytes::Bytes>>;
+type H2Send = hyper::client::conn::http2::SendRequest<http_body_util::Empty<bytes::Bytes>>;
+
+/// How one client of an open-loop run sends.
+enum Slot {
+    /// One QUIC connection, one stream per request.
+    Quic(Connection),
+    /// A pool of HTTP/1.1 keep-alive connections, one request each at a time.
+    H1(tokio::sync::Mutex<Vec<H1Send>>),
+    /// One HTTP/2 connection, one stream per request.
+    H2(H2Send),
+}
+
+/// One client: at most `--concurrency` requests outstanding (the same cap
+/// for every protocol; a request that finds them all busy waits, and the
+/// wait counts in its latency).
+struct ClientSlot {
+    sem: tokio::sync::Semaphore,
+    slot: Slot,
+}
+
+async fn issue(c: &ClientSlot, k: usize, r: Req, uri: &str) -> Result<u64, String> {
+    let _permit = c.sem.acquire().await.map_err(|e| e.to_string())?;
+    match &c.slot {
+        Slot::Quic(conn) => match conn.fetch(k as u64, r.offset, r.size).await {
+            Ok(b) if b.len() == r.size as usize => Ok(b.len() as u64),
+            Ok(b) => Err(format!("short body {} of {}", b.len(), r.size)),
+            Err(e) => Err(e.to_string()),
+        },
+        Slot::H1(pool) => {
+            let mut h = pool
+                .lock()
+                .await
+                .pop()
+                .ok_or_else(|| "no free HTTP/1.1 connection".to_string())?;
+            let res = async {
+                h.ready().await.map_err(|e| e.to_string())?;
+                let req = range_request(uri, r).map_err(|e| e.to_string())?;
+                let resp = h.send_request(req).await.map_err(|e| e.to_string())?;
+                check_response(resp, r).await
+            }
+            .await;
+            pool.lock().await.push(h);
+            res
+        }
+        Slot::H2(h) => {
+            let mut h = h.clone();
+            let req = range_request(uri, r).map_err(|e| e.to_string())?;
+            let resp = h.send_request(req).await.map_err(|e| e.to_string())?;
+            check_response(resp, r).await
+        }
+    }
+}
+
+fn us(d: Duration) -> u32 {
+    d.as_micros().min(u32::MAX as u128) as u32
+}
+
+/// Replays `sched` on `slots`: a blocking thread sleeps until each send
+/// time (`std::thread::sleep`, microsecond precision, unlike tokio's 1 ms
+/// timer wheel) and spawns the request on the client runtime. Latency is
+/// measured from the scheduled time.
+#[allow(clippy::too_many_arguments)]
+async fn open_loop(
+    label: &str,
+    slots: Arc<Vec<ClientSlot>>,
+    list: &Arc<Vec<Req>>,
+    sched: Arc<Vec<Arrival>>,
+    rate: f64,
+    uri: Arc<str>,
+    pids: &[u32],
+    connections: usize,
+) -> Result<RunResult> {
+    let handle = tokio::runtime::Handle::current();
+    let cpu0 = cpu_seconds_of(pids);
+    let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
+    let start = Instant::now() + Duration::from_millis(50);
+    let list = list.clone();
+    let handles = tokio::task::spawn_blocking(move || {
+        let mut hs = Vec::with_capacity(sched.len());
+        for (k, a) in sched.iter().enumerate() {
+            let due = start + a.at;
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+            let slots = slots.clone();
+            let uri = uri.clone();
+            let r = list[k % list.len()];
+            let client = a.client % slots.len().max(1);
+            hs.push(handle.spawn(async move {
+                let lag = due.elapsed();
+                let res = match slots.get(client) {
+                    Some(c) => issue(c, k, r, &uri).await,
+                    None => Err("no clients".to_string()),
+                };
+                (lag, due.elapsed(), res)
+            }));
+        }
+        hs
+    })
+    .await?;
+    let mut st = LoopStats::default();
+    let mut lag = Vec::with_capacity(handles.len());
+    for h in handles {
+        let (l, t, res) = h.await?;
+        lag.push(us(l));
+        match res {
+            Ok(n) => {
+                st.lat_us.push(us(t));
+                st.bytes += n;
+            }
+            Err(e) => st.error(e),
+        }
+    }
+    let wall = start.elapsed();
+    let cpu1 = cpu_seconds_of(pids);
+    let client_cpu = proc_cpu_seconds(std::process::id()).unwrap_or(0.0) - self0;
+    Ok(RunResult {
+        label: label.into(),
+        requests: st.lat_us.len() as u64,
+        bytes: st.bytes,
+        errors: st.errors,
+        first_error: st.first_error,
+        wall,
+        latency: latency(&mut st.lat_us),
+        server_cpu: (!pids.is_empty()).then_some(cpu1 - cpu0),
+        connections,
+        client_cpu,
+        offered: Some(rate),
+        lag: Some(latency(&mut lag)),
+    })
+}
+
+/// The open-loop schedules of a run: one per `--rate`.
+pub type Schedules = Vec<(f64, Arc<Vec<Arrival>>)>;
+
 async fn run_quic(
     srv: &ServerUnderTest,
     list: &Arc<Vec<Req>>,
     args: &ServerArgs,
-) -> Result<RunResult> {
-    let conns = connect_many(srv.addr, &srv.fingerprint, &srv.hello(), args.clients, 64).await?;
+    scheds: &Schedules,
+) -> Result<Vec<RunResult>> {
+    let conns = connect_many_on_with(
+        srv.addr,
+        &srv.fingerprint,
+        &srv.hello(),
+        args.clients,
+        64,
+        args.client_endpoints,
+        args.client_max_udp_payload,
+    )
+    .await?;
     let pids: Vec<u32> = srv.pid().into_iter().collect();
+    if !scheds.is_empty() {
+        let conc = args.concurrency.max(1);
+        let slots: Arc<Vec<ClientSlot>> = Arc::new(
+            conns
+                .iter()
+                .map(|c| ClientSlot {
+                    sem: tokio::sync::Semaphore::new(conc),
+                    slot: Slot::Quic(c.clone()),
+                })
+                .collect(),
+        );
+        let mut out = vec![];
+        for (rate, sched) in scheds {
+            let mut r = open_loop(
+                "QUIC",
+                slots.clone(),
+                list,
+                sched.clone(),
+                *rate,
+                "".into(),
+                &pids,
+                conns.len(),
+            )
+            .await?;
+            if srv.pid().is_none() {
+                r.server_cpu = None;
+            }
+            out.push(r);
+        }
+        for c in &conns {
+            c.close();
+        }
+        return Ok(out);
+    }
     let cpu0 = cpu_seconds_of(&pids);
+    let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
     let start = Instant::now();
     let cursor = new_cursor(list, args, start);
     let mut set = tokio::task::JoinSet::new();
@@ -752,10 +1120,11 @@ async fn run_quic(
     }
     let wall = start.elapsed();
     let cpu1 = cpu_seconds_of(&pids);
+    let client_cpu = proc_cpu_seconds(std::process::id()).unwrap_or(0.0) - self0;
     for c in &conns {
         c.close();
     }
-    Ok(RunResult {
+    Ok(vec![RunResult {
         label: "QUIC".into(),
         requests: all.lat_us.len() as u64,
         bytes: all.bytes,
@@ -765,7 +1134,10 @@ async fn run_quic(
         latency: latency(&mut all.lat_us),
         server_cpu: srv.pid().map(|_| cpu1 - cpu0),
         connections: conns.len(),
-    })
+        client_cpu,
+        offered: None,
+        lag: None,
+    }])
 }
 
 // ---------------------------------------------------------------- nginx
@@ -966,7 +1338,8 @@ async fn run_nginx(
     list: &Arc<Vec<Req>>,
     args: &ServerArgs,
     h2: bool,
-) -> Result<RunResult> {
+    scheds: &Schedules,
+) -> Result<Vec<RunResult>> {
     let alpn: &[u8] = if h2 { b"h2" } else { b"http/1.1" };
     let tls = tokio_rustls::TlsConnector::from(https_client_config(&ng.cert_der, alpn)?);
     let conc = args.concurrency.max(1);
@@ -1003,7 +1376,57 @@ async fn run_nginx(
         senders.push(r??);
     }
     let pids = ng.pids();
+    let label = if h2 { "nginx h2" } else { "nginx h1" };
+    if !scheds.is_empty() {
+        let uri: Arc<str> = if h2 {
+            format!("https://localhost:{}/db", ng.addr.port()).into()
+        } else {
+            "/db".into()
+        };
+        let mut slots = vec![];
+        let mut senders = senders.into_iter();
+        for _ in 0..args.clients {
+            let slot = if h2 {
+                match senders.next() {
+                    Some(Sender::H2(h)) => Slot::H2(h),
+                    _ => bail!("missing HTTP/2 connection"),
+                }
+            } else {
+                let mut pool = vec![];
+                for _ in 0..conc {
+                    match senders.next() {
+                        Some(Sender::H1(h)) => pool.push(h),
+                        _ => bail!("missing HTTP/1.1 connection"),
+                    }
+                }
+                Slot::H1(tokio::sync::Mutex::new(pool))
+            };
+            slots.push(ClientSlot {
+                sem: tokio::sync::Semaphore::new(conc),
+                slot,
+            });
+        }
+        let slots = Arc::new(slots);
+        let mut out = vec![];
+        for (rate, sched) in scheds {
+            out.push(
+                open_loop(
+                    label,
+                    slots.clone(),
+                    list,
+                    sched.clone(),
+                    *rate,
+                    uri.clone(),
+                    &pids,
+                    n_conns,
+                )
+                .await?,
+            );
+        }
+        return Ok(out);
+    }
     let cpu0 = cpu_seconds_of(&pids);
+    let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
     let start = Instant::now();
     let cursor = new_cursor(list, args, start);
     let uri: Arc<str> = if h2 {
@@ -1068,8 +1491,9 @@ async fn run_nginx(
     }
     let wall = start.elapsed();
     let cpu1 = cpu_seconds_of(&pids);
-    Ok(RunResult {
-        label: if h2 { "nginx h2" } else { "nginx h1" }.into(),
+    let client_cpu = proc_cpu_seconds(std::process::id()).unwrap_or(0.0) - self0;
+    Ok(vec![RunResult {
+        label: label.into(),
         requests: all.lat_us.len() as u64,
         bytes: all.bytes,
         errors: all.errors,
@@ -1078,19 +1502,22 @@ async fn run_nginx(
         latency: latency(&mut all.lat_us),
         server_cpu: Some(cpu1 - cpu0),
         connections: n_conns,
-    })
+        client_cpu,
+        offered: None,
+        lag: None,
+    }])
 }
 
 enum Sender {
-    H1(hyper::client::conn::http1::SendRequest<http_body_util::Empty<bytes::Bytes>>),
-    H2(hyper::client::conn::http2::SendRequest<http_body_util::Empty<bytes::Bytes>>),
+    H1(H1Send),
+    H2(H2Send),
 }
 
 /// What a `server` run measured.
 #[derive(Debug, Clone)]
 pub struct ServerReport {
-    /// The QUIC side.
-    pub quic: RunResult,
+    /// The QUIC side: one closed-loop run, or one run per `--rate`.
+    pub quic: Vec<RunResult>,
     /// The nginx sides.
     pub nginx: Vec<RunResult>,
 }
@@ -1098,8 +1525,8 @@ pub struct ServerReport {
 /// `planet-bench server`.
 pub fn run(args: ServerArgs) -> Result<()> {
     let report = bench(&args)?;
-    let mut failed = report.quic.errors > 0;
-    for n in &report.nginx {
+    let mut failed = false;
+    for n in report.quic.iter().chain(&report.nginx) {
         failed |= n.errors > 0;
     }
     if failed {
@@ -1147,11 +1574,46 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
         .enable_all()
         .build()?;
     let reqs = Arc::new(list.reqs.clone());
+    let scheds: Schedules = args
+        .rate
+        .iter()
+        .map(|&rate| {
+            let n = args
+                .requests
+                .unwrap_or((rate * args.seconds).round().max(1.0) as usize);
+            let s = schedule(rate, n, args.clients, args.seed, args.arrivals);
+            (rate, Arc::new(s))
+        })
+        .collect();
+    if !scheds.is_empty() {
+        println!(
+            "open loop ({:?} arrivals, latency from the scheduled send time): rates {:?} req/s, \
+             at most {} outstanding per client",
+            args.arrivals, args.rate, args.concurrency
+        );
+    }
+    println!(
+        "client: {} runtime threads, QUIC connections on {}",
+        threads.max(1),
+        if args.client_endpoints == 0 {
+            "one endpoint each".to_string()
+        } else {
+            format!("{} shared endpoint(s)", args.client_endpoints)
+        }
+    );
 
-    let mut srv = ServerUnderTest::start(args.server, &db, args.server_bin.as_deref())?;
-    let quic = rt.block_on(run_quic(&srv, &reqs, args))?;
+    let mut srv = ServerUnderTest::start_with(
+        args.server,
+        &db,
+        args.server_bin.as_deref(),
+        args.client_max_udp_payload,
+        args.server_threads,
+    )?;
+    let quic = rt.block_on(run_quic(&srv, &reqs, args, &scheds))?;
     srv.stop();
-    quic.print();
+    for q in &quic {
+        q.print();
+    }
 
     let mut nginx = vec![];
     if args.nginx {
@@ -1163,18 +1625,28 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
             HttpMode::Both => &[false, true],
         };
         for &h2 in modes {
-            let r = rt.block_on(run_nginx(&ng, &reqs, args, h2))?;
-            r.print();
-            nginx.push(r);
+            let rs = rt.block_on(run_nginx(&ng, &reqs, args, h2, &scheds))?;
+            for r in rs {
+                r.print();
+                nginx.push(r);
+            }
         }
         drop(ng);
         for n in &nginx {
+            let Some(q) = quic.iter().find(|q| q.offered == n.offered) else {
+                continue;
+            };
+            let at = match n.offered {
+                Some(r) => format!(" at {r:.0} req/s offered"),
+                None => String::new(),
+            };
             println!(
-                "QUIC / {}: requests/s x{:.2}, MB/s x{:.2}, p99 x{:.2} (lower is better for p99)",
+                "QUIC / {}{at}: requests/s x{:.2}, MB/s x{:.2}, p50 x{:.2}, p99 x{:.2} (lower is better for latency)",
                 n.label,
-                quic.rps() / n.rps().max(1e-9),
-                quic.mbps() / n.mbps().max(1e-9),
-                quic.latency.p99 as f64 / (n.latency.p99.max(1)) as f64
+                q.rps() / n.rps().max(1e-9),
+                q.mbps() / n.mbps().max(1e-9),
+                q.latency.p50 as f64 / (n.latency.p50.max(1)) as f64,
+                q.latency.p99 as f64 / (n.latency.p99.max(1)) as f64
             );
         }
     }
@@ -1244,8 +1716,45 @@ mod tests {
             ..ServerArgs::default()
         };
         let r = bench(&args).unwrap();
-        assert_eq!(r.quic.errors, 0, "{:?}", r.quic.first_error);
-        assert!(r.quic.requests > 0 && r.quic.bytes > 0);
-        assert_eq!(r.quic.connections, 5);
+        assert_eq!(r.quic.len(), 1);
+        let q = &r.quic[0];
+        assert_eq!(q.errors, 0, "{:?}", q.first_error);
+        assert!(q.requests > 0 && q.bytes > 0);
+        assert_eq!(q.connections, 5);
+    }
+
+    #[test]
+    fn smoke_server_bench_open_loop() {
+        let args = ServerArgs {
+            db: Some(tiny_db()),
+            clients: 4,
+            concurrency: 2,
+            seconds: 1.0,
+            list_len: 500,
+            server: ServerMode::InProcess,
+            client_threads: Some(2),
+            rate: vec![200.0, 400.0],
+            ..ServerArgs::default()
+        };
+        let r = bench(&args).unwrap();
+        assert_eq!(r.quic.len(), 2);
+        for (q, want) in r.quic.iter().zip([200u64, 400]) {
+            assert_eq!(q.errors, 0, "{:?}", q.first_error);
+            assert_eq!(q.requests, want);
+            assert!(q.lag.is_some());
+        }
+    }
+
+    #[test]
+    fn schedules_are_seeded_and_at_the_rate() {
+        let a = schedule(1000.0, 20_000, 200, 3, Arrivals::Poisson);
+        assert_eq!(a, schedule(1000.0, 20_000, 200, 3, Arrivals::Poisson));
+        let span = a.last().unwrap().at.as_secs_f64();
+        assert!((19.0..21.0).contains(&span), "{span}");
+        assert!(a.windows(2).all(|w| w[0].at <= w[1].at));
+        assert!(a.iter().all(|x| x.client < 200));
+        let u = schedule(100.0, 300, 7, 3, Arrivals::Uniform);
+        assert_eq!(u[150].at, Duration::from_secs_f64(1.5));
+        assert_eq!(u[150].client, 150 % 7);
     }
 }

@@ -233,33 +233,58 @@ impl Connection {
         hello: Hello,
         opts: &ConnectOptions,
     ) -> Result<(Connection, Welcome), NetError> {
-        let fut = Self::connect_inner(addr, server_name, tls, hello, opts);
+        let fut = Self::connect_own_endpoint(addr, server_name, tls, hello, opts);
         match tokio::time::timeout(opts.connect_timeout, fut).await {
             Ok(r) => r,
             Err(_) => Err(NetError::Timeout),
         }
     }
 
-    async fn connect_inner(
+    /// Like [`Connection::connect_with`], but on an existing client
+    /// `endpoint` (one UDP socket) that may carry many connections, e.g. one
+    /// from [`new_endpoint`] shared by every connection of a benchmark or a
+    /// multi-server client. The endpoint lives as long as any connection
+    /// opened on it.
+    pub async fn connect_on(
+        endpoint: &quinn::Endpoint,
         addr: SocketAddr,
         server_name: &str,
         tls: Arc<rustls::ClientConfig>,
         hello: Hello,
         opts: &ConnectOptions,
     ) -> Result<(Connection, Welcome), NetError> {
-        let bind: SocketAddr = if addr.is_ipv6() {
-            (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
-        } else {
-            (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
-        };
-        let mut endpoint = client_endpoint(bind).map_err(|e| NetError::Connect(e.to_string()))?;
+        let fut = Self::connect_inner(endpoint.clone(), addr, server_name, tls, hello, opts);
+        match tokio::time::timeout(opts.connect_timeout, fut).await {
+            Ok(r) => r,
+            Err(_) => Err(NetError::Timeout),
+        }
+    }
+
+    async fn connect_own_endpoint(
+        addr: SocketAddr,
+        server_name: &str,
+        tls: Arc<rustls::ClientConfig>,
+        hello: Hello,
+        opts: &ConnectOptions,
+    ) -> Result<(Connection, Welcome), NetError> {
+        let endpoint = new_endpoint(addr)?;
+        Self::connect_inner(endpoint, addr, server_name, tls, hello, opts).await
+    }
+
+    async fn connect_inner(
+        endpoint: quinn::Endpoint,
+        addr: SocketAddr,
+        server_name: &str,
+        tls: Arc<rustls::ClientConfig>,
+        hello: Hello,
+        opts: &ConnectOptions,
+    ) -> Result<(Connection, Welcome), NetError> {
         let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls)
             .map_err(|e| NetError::Connect(e.to_string()))?;
         let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
         cfg.transport_config(opts.transport.clone().unwrap_or_else(default_transport));
-        endpoint.set_default_client_config(cfg);
         let conn = endpoint
-            .connect(addr, server_name)
+            .connect_with(cfg, addr, server_name)
             .map_err(|e| NetError::Connect(e.to_string()))?
             .await?;
         let (mut send, mut recv) = conn.open_bi().await?;
@@ -780,6 +805,19 @@ async fn serve_session(
     }
     tasks.shutdown().await;
     user_closed
+}
+
+/// A client endpoint (one UDP socket on an ephemeral port of the address
+/// family of `peer`, 4 MiB socket buffers) for [`Connection::connect_on`].
+/// Any number of connections may share it; it is closed when the last handle
+/// and connection are dropped.
+pub fn new_endpoint(peer: SocketAddr) -> Result<quinn::Endpoint, NetError> {
+    let bind: SocketAddr = if peer.is_ipv6() {
+        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+    } else {
+        (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
+    };
+    client_endpoint(bind).map_err(|e| NetError::Connect(e.to_string()))
 }
 
 /// A client endpoint on a UDP socket with 4 MiB buffers (capped by the

@@ -61,11 +61,16 @@ pub enum ErrorCode {
     DuplicateHello = 20,
     /// A request id that is already in flight on this connection.
     DuplicateRequest = 21,
+    /// The peer did not finish sending in time (a request stream that was
+    /// opened but not completed within the server's request-read deadline).
+    /// Sent only as a QUIC application code (`stop`/`reset`), never in a
+    /// message body; see docs/PROTOCOL.md §6.
+    Timeout = 22,
 }
 
 impl ErrorCode {
     /// Every code, in numeric order (handy to pre-register metric labels).
-    pub const ALL: [ErrorCode; 21] = [
+    pub const ALL: [ErrorCode; 22] = [
         ErrorCode::UnsupportedVersion,
         ErrorCode::Unauthorized,
         ErrorCode::UnknownDatabase,
@@ -87,6 +92,7 @@ impl ErrorCode {
         ErrorCode::Internal,
         ErrorCode::DuplicateHello,
         ErrorCode::DuplicateRequest,
+        ErrorCode::Timeout,
     ];
 
     /// The numeric wire value.
@@ -118,6 +124,7 @@ impl ErrorCode {
             19 => ErrorCode::Internal,
             20 => ErrorCode::DuplicateHello,
             21 => ErrorCode::DuplicateRequest,
+            22 => ErrorCode::Timeout,
             _ => return None,
         })
     }
@@ -146,6 +153,7 @@ impl ErrorCode {
             ErrorCode::Internal => "internal",
             ErrorCode::DuplicateHello => "duplicate_hello",
             ErrorCode::DuplicateRequest => "duplicate_request",
+            ErrorCode::Timeout => "timeout",
         }
     }
 
@@ -249,6 +257,8 @@ mod tests {
         assert_eq!(ErrorCode::Cancelled as u16, 17);
         assert_eq!(ErrorCode::DuplicateHello as u16, 20);
         assert_eq!(ErrorCode::DuplicateRequest as u16, 21);
+        assert_eq!(ErrorCode::Timeout as u16, 22);
+        assert_eq!(ErrorCode::Timeout.as_str(), "timeout");
     }
 
     #[test]
@@ -259,7 +269,7 @@ mod tests {
             assert_eq!(ErrorCode::from_quic(u64::from(code.to_quic())), Some(*code));
         }
         assert_eq!(ErrorCode::from_u16(0), None);
-        assert_eq!(ErrorCode::from_u16(22), None);
+        assert_eq!(ErrorCode::from_u16(23), None);
         assert_eq!(ErrorCode::from_quic(1 << 20), None);
     }
 

@@ -8,6 +8,7 @@
 //! key = "/etc/planet/tls/key.pem"
 //! max_connections = 2000
 //! idle_timeout_ms = 30000
+//! max_udp_payload = 1452            # path-MTU discovery ceiling (bytes)
 //!
 //! [[database]]
 //! name = "earth"
@@ -139,7 +140,15 @@ pub struct ServerConfig {
     /// Longest a request may be paced by its tenant's bandwidth bucket
     /// before it is refused with `rate_limited`.
     pub max_rate_wait: Duration,
+    /// Ceiling of QUIC path-MTU discovery: the largest UDP payload the
+    /// server probes for and sends (the client's own `max_udp_payload_size`
+    /// also bounds it). Default 1452, quinn's default, safe on Ethernet
+    /// paths; larger values only help on jumbo-frame networks or loopback.
+    pub max_udp_payload: u16,
 }
+
+/// Default [`ServerConfig::max_udp_payload`].
+pub const DEFAULT_MAX_UDP_PAYLOAD: u16 = 1452;
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -150,6 +159,7 @@ struct FileConfig {
     key: Option<PathBuf>,
     max_connections: Option<usize>,
     idle_timeout_ms: Option<u32>,
+    max_udp_payload: Option<u16>,
     #[serde(default)]
     database: Vec<FileDatabase>,
     #[serde(default)]
@@ -243,6 +253,7 @@ impl ServerConfig {
             max_record_size: planet_core::format::MAX_RECORD_LEN as u32,
             shutdown_grace: Duration::from_secs(10),
             max_rate_wait: Duration::from_secs(2),
+            max_udp_payload: DEFAULT_MAX_UDP_PAYLOAD,
         }
     }
 
@@ -293,6 +304,9 @@ impl ServerConfig {
         }
         if let Some(t) = file.idle_timeout_ms {
             cfg.idle_timeout_ms = t;
+        }
+        if let Some(m) = file.max_udp_payload {
+            cfg.max_udp_payload = m;
         }
         cfg.databases = file
             .database
@@ -350,6 +364,12 @@ impl ServerConfig {
         }
         if self.idle_timeout_ms == 0 {
             return bad("idle_timeout_ms must be at least 1".into());
+        }
+        if !(1200..=65_527).contains(&self.max_udp_payload) {
+            return bad(format!(
+                "max_udp_payload {} is outside 1200..=65527",
+                self.max_udp_payload
+            ));
         }
         let mut names = HashSet::new();
         for d in &self.databases {

@@ -47,6 +47,32 @@ struct Established {
     db: Arc<MappedDb>,
     session: ServerSession,
     in_flight: Mutex<InFlight>,
+    ok: OkMetrics,
+}
+
+/// The labelled metrics a successful request updates, resolved once per
+/// session: `with_label_values` hashes the label strings and takes a lock,
+/// four times per request otherwise.
+struct OkMetrics {
+    requests: prometheus::IntCounter,
+    bytes_sent: prometheus::IntCounter,
+    record_size: prometheus::Histogram,
+    duration: prometheus::Histogram,
+}
+
+impl OkMetrics {
+    fn new(m: &crate::Metrics, tenant: &str, db: &str) -> OkMetrics {
+        OkMetrics {
+            requests: m.requests_total.with_label_values(&[
+                tenant,
+                db,
+                RequestOutcome::Ok.as_str(),
+            ]),
+            bytes_sent: m.bytes_sent_total.with_label_values(&[tenant, db]),
+            record_size: m.record_size.with_label_values(&[db]),
+            duration: m.request_duration.with_label_values(&[db]),
+        }
+    }
 }
 
 /// Per-connection state shared with request tasks.
@@ -245,6 +271,7 @@ pub(crate) async fn serve_connection(
                             );
                             let _ = ctx.established.set(Established {
                                 in_flight: Mutex::new(InFlight::new(tenant.cfg.max_in_flight)),
+                                ok: OkMetrics::new(&shared.metrics, &tenant.cfg.name, &db.name),
                                 tenant,
                                 db,
                                 session: session.clone(),
@@ -493,9 +520,11 @@ async fn serve_request(
             return;
         }
         Err(_) => {
-            let _ = recv.stop(code(ErrorCode::Malformed.to_quic()));
-            let _ = send.reset(code(ErrorCode::Malformed.to_quic()));
-            metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Invalid);
+            // The request never completed: free the stream with its own code
+            // (not `malformed`: nothing invalid was received).
+            let _ = recv.stop(code(ErrorCode::Timeout.to_quic()));
+            let _ = send.reset(code(ErrorCode::Timeout.to_quic()));
+            metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Timeout);
             return;
         }
     };
@@ -669,19 +698,12 @@ async fn serve_request(
             }
         }
     };
-    metrics.request(tenant, dbname, outcome);
     if outcome == RequestOutcome::Ok {
-        metrics
-            .bytes_sent_total
-            .with_label_values(&[tenant, dbname])
-            .inc_by(size);
-        metrics
-            .record_size
-            .with_label_values(&[dbname])
-            .observe(size as f64);
-        metrics
-            .request_duration
-            .with_label_values(&[dbname])
-            .observe(started.elapsed().as_secs_f64());
+        est.ok.requests.inc();
+        est.ok.bytes_sent.inc_by(size);
+        est.ok.record_size.observe(size as f64);
+        est.ok.duration.observe(started.elapsed().as_secs_f64());
+    } else {
+        metrics.request(tenant, dbname, outcome);
     }
 }

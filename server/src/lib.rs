@@ -299,6 +299,22 @@ fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, Server
     })?;
     t.max_idle_timeout(Some(idle_timeout));
     t.keep_alive_interval(Some((idle / 3).max(Duration::from_millis(500))));
+    // ACK frequency (draft-ietf-quic-ack-frequency, which quinn clients
+    // support): ask the client to acknowledge every 11th ack-eliciting packet
+    // rather than every 2nd, within min(its max_ack_delay, RTT), as quinn
+    // caps the requested delay at the RTT (2 ms floor). A 7 kB response is
+    // about 6 packets, so this removes most pure-ACK packets that the client
+    // builds, encrypts and sends and the server receives, decrypts and
+    // processes. Loss recovery is unaffected beyond the PTO accounting for the
+    // requested delay; out-of-order packets are still acknowledged at once.
+    let mut ack = quinn::AckFrequencyConfig::default();
+    ack.ack_eliciting_threshold(VarInt::from_u32(10));
+    t.ack_frequency_config(Some(ack));
+    // Path-MTU discovery up to the configured ceiling (quinn probes
+    // upwards from 1200 bytes and backs off on black holes).
+    let mut mtu = quinn::MtuDiscoveryConfig::default();
+    mtu.upper_bound(cfg.max_udp_payload);
+    t.mtu_discovery_config(Some(mtu));
     Ok(t)
 }
 

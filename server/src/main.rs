@@ -77,6 +77,14 @@ struct RunArgs {
     /// its SHA-256 fingerprint on stdout.
     #[arg(long, conflicts_with_all = ["cert", "key"])]
     dev_cert: bool,
+    /// Ceiling of QUIC path-MTU discovery in bytes (overrides the config;
+    /// default 1452). Only jumbo-frame networks or loopback gain from more.
+    #[arg(long)]
+    max_udp_payload: Option<u16>,
+    /// Tokio worker threads (default: one per CPU). 1 runs everything on
+    /// a single-threaded runtime: no cross-thread wake-ups, one core at most.
+    #[arg(long)]
+    worker_threads: Option<usize>,
     /// Log format.
     #[arg(long, value_enum, default_value = "text")]
     log_format: LogFormat,
@@ -146,6 +154,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     if let Some(m) = args.metrics {
         cfg.metrics = Some(m);
     }
+    if let Some(m) = args.max_udp_payload {
+        cfg.max_udp_payload = m;
+    }
     if let (Some(c), Some(k)) = (&args.cert, &args.key) {
         cfg.tls = TlsSource::Pem {
             cert: c.clone(),
@@ -189,7 +200,17 @@ fn run() -> Result<()> {
     init_logging(cli.run.log_format);
     let cfg = build_config(&cli.run)?;
     let dev = matches!(cfg.tls, TlsSource::DevCert);
-    let rt = tokio::runtime::Builder::new_multi_thread()
+    let mut builder = match cli.run.worker_threads {
+        Some(0) => bail!("--worker-threads must be at least 1"),
+        Some(1) => tokio::runtime::Builder::new_current_thread(),
+        Some(n) => {
+            let mut b = tokio::runtime::Builder::new_multi_thread();
+            b.worker_threads(n);
+            b
+        }
+        None => tokio::runtime::Builder::new_multi_thread(),
+    };
+    let rt = builder
         .enable_all()
         .build()
         .context("cannot start the tokio runtime")?;

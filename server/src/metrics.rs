@@ -40,6 +40,8 @@ pub enum RequestOutcome {
     Corrupt,
     /// Server-side failure or shutdown.
     Error,
+    /// The request was not received within the request-read deadline.
+    Timeout,
 }
 
 impl RequestOutcome {
@@ -53,6 +55,7 @@ impl RequestOutcome {
             RequestOutcome::RateLimited => "rate_limited",
             RequestOutcome::Corrupt => "corrupt",
             RequestOutcome::Error => "error",
+            RequestOutcome::Timeout => "timeout",
         }
     }
 
@@ -65,6 +68,7 @@ impl RequestOutcome {
             C::CorruptRecord => RequestOutcome::Corrupt,
             C::Cancelled => RequestOutcome::Cancelled,
             C::Internal | C::ShuttingDown | C::ServerBusy => RequestOutcome::Error,
+            C::Timeout => RequestOutcome::Timeout,
             _ => RequestOutcome::Invalid,
         }
     }

@@ -109,6 +109,52 @@ async fn fetches_whole_tree_and_counts_metrics() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_can_share_one_client_endpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let file = file_bytes(&dir.path().join("earth.planetdb"));
+    let h = Server::start(cfg).await.unwrap();
+    let ep = planet_client::net::new_endpoint(h.local_addr()).unwrap();
+    let mut conns = vec![];
+    for _ in 0..3 {
+        let (c, w) = planet_client::net::Connection::connect_on(
+            &ep,
+            h.local_addr(),
+            "localhost",
+            tls_for(&h),
+            acme(),
+            &ConnectOptions::default(),
+        )
+        .await
+        .unwrap();
+        assert_eq!(w.database, "earth");
+        conns.push(c);
+    }
+    assert_eq!(h.active_connections(), 3);
+    for (i, c) in conns.iter().enumerate() {
+        let (off, size) = recs[i % recs.len()];
+        let body = c.fetch(1, off, size).await.unwrap();
+        assert_eq!(&body[..], &file[off as usize..off as usize + size as usize]);
+    }
+    // Closing one connection leaves the others (and the endpoint) usable.
+    conns.remove(0).close();
+    let (off, size) = recs[0];
+    assert_eq!(
+        conns[1].fetch(2, off, size).await.unwrap().len(),
+        size as usize
+    );
+    drop(ep);
+    assert_eq!(
+        conns[0].fetch(3, off, size).await.unwrap().len(),
+        size as usize
+    );
+    for c in &conns {
+        c.close();
+    }
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_requests_get_their_codes_and_the_connection_stays_usable() {
     let dir = tempfile::tempdir().unwrap();
     let (cfg, recs) = two_tenant_config(dir.path());
@@ -644,6 +690,18 @@ fn config_errors_are_clear() {
     assert!(e.to_string().contains("nope.planetdb"), "{e}");
     let typo = format!("{ok}max_conections = 3\n");
     assert!(ServerConfig::from_toml_str(&typo, dir.path()).is_err());
+    assert_eq!(
+        ServerConfig::from_toml_str(&ok, dir.path())
+            .unwrap()
+            .max_udp_payload,
+        1452
+    );
+    let jumbo = format!("max_udp_payload = 8952\n{ok}");
+    let c = ServerConfig::from_toml_str(&jumbo, dir.path()).unwrap();
+    assert_eq!(c.max_udp_payload, 8952);
+    let tiny = format!("max_udp_payload = 900\n{ok}");
+    let e = ServerConfig::from_toml_str(&tiny, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("max_udp_payload 900"), "{e}");
     // The deploy example parses (paths do not exist here, so only syntax).
     let example = std::fs::read_to_string(
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/server.toml"),
