@@ -9,6 +9,7 @@
 //! max_connections = 2000
 //! idle_timeout_ms = 30000
 //! max_udp_payload = 1452            # path-MTU discovery ceiling (bytes)
+//! initial_window = 65536            # congestion window of a new connection (bytes)
 //!
 //! [[database]]
 //! name = "earth"
@@ -145,10 +146,19 @@ pub struct ServerConfig {
     /// also bounds it). Default 1452, quinn's default, safe on Ethernet
     /// paths; larger values only help on jumbo-frame networks or loopback.
     pub max_udp_payload: u16,
+    /// Congestion window of a new connection, bytes (QUIC's default is
+    /// 10 packets, about 14.7 kB). The Welcome carries the database header
+    /// (47 kB for the real-data Earth, most of it the colour roots), so with
+    /// the default it needs 2–3 slow-start round trips before the first
+    /// frame; 64 KiB sends it in one flight.
+    pub initial_window: u64,
 }
 
 /// Default [`ServerConfig::max_udp_payload`].
 pub const DEFAULT_MAX_UDP_PAYLOAD: u16 = 1452;
+
+/// Default [`ServerConfig::initial_window`].
+pub const DEFAULT_INITIAL_WINDOW: u64 = 64 * 1024;
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -160,6 +170,7 @@ struct FileConfig {
     max_connections: Option<usize>,
     idle_timeout_ms: Option<u32>,
     max_udp_payload: Option<u16>,
+    initial_window: Option<u64>,
     #[serde(default)]
     database: Vec<FileDatabase>,
     #[serde(default)]
@@ -254,6 +265,7 @@ impl ServerConfig {
             shutdown_grace: Duration::from_secs(10),
             max_rate_wait: Duration::from_secs(2),
             max_udp_payload: DEFAULT_MAX_UDP_PAYLOAD,
+            initial_window: DEFAULT_INITIAL_WINDOW,
         }
     }
 
@@ -307,6 +319,9 @@ impl ServerConfig {
         }
         if let Some(m) = file.max_udp_payload {
             cfg.max_udp_payload = m;
+        }
+        if let Some(w) = file.initial_window {
+            cfg.initial_window = w;
         }
         cfg.databases = file
             .database
@@ -369,6 +384,12 @@ impl ServerConfig {
             return bad(format!(
                 "max_udp_payload {} is outside 1200..=65527",
                 self.max_udp_payload
+            ));
+        }
+        if !(2400..=16 * 1024 * 1024).contains(&self.initial_window) {
+            return bad(format!(
+                "initial_window {} is outside 2400..=16777216 bytes",
+                self.initial_window
             ));
         }
         let mut names = HashSet::new();

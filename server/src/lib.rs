@@ -315,6 +315,11 @@ fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, Server
     let mut mtu = quinn::MtuDiscoveryConfig::default();
     mtu.upper_bound(cfg.max_udp_payload);
     t.mtu_discovery_config(Some(mtu));
+    // A larger initial congestion window: the Welcome (the database header)
+    // goes out in one flight instead of 2–3 slow-start round trips.
+    let mut cc = quinn::congestion::CubicConfig::default();
+    cc.initial_window(cfg.initial_window);
+    t.congestion_controller_factory(Arc::new(cc));
     Ok(t)
 }
 

@@ -81,6 +81,10 @@ struct RunArgs {
     /// default 1452). Only jumbo-frame networks or loopback gain from more.
     #[arg(long)]
     max_udp_payload: Option<u16>,
+    /// Congestion window of a new connection in bytes (overrides the
+    /// config; default 65536, QUIC's own default is about 14 720).
+    #[arg(long)]
+    initial_window: Option<u64>,
     /// Tokio worker threads (default: one per CPU). 1 runs everything on
     /// a single-threaded runtime: no cross-thread wake-ups, one core at most.
     #[arg(long)]
@@ -156,6 +160,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if let Some(m) = args.max_udp_payload {
         cfg.max_udp_payload = m;
+    }
+    if let Some(w) = args.initial_window {
+        cfg.initial_window = w;
     }
     if let (Some(c), Some(k)) = (&args.cert, &args.key) {
         cfg.tls = TlsSource::Pem {
