@@ -41,6 +41,19 @@ pub fn harmonic_fill(grid: &mut [f64], w: usize, h: usize, voids: &[usize]) {
     }
 }
 
+/// The 4-neighbours of cell `i` inside a `w` × `h` window.
+fn window_neighbours(i: usize, w: usize, h: usize) -> impl Iterator<Item = usize> {
+    let (x, y) = (i % w, i / w);
+    [
+        (x > 0).then(|| i - 1),
+        (x + 1 < w).then(|| i + 1),
+        (y > 0).then(|| i - w),
+        (y + 1 < h).then(|| i + w),
+    ]
+    .into_iter()
+    .flatten()
+}
+
 /// No unknown (a fixed cell, or outside the window).
 const NONE: u32 = u32::MAX;
 
@@ -69,17 +82,8 @@ impl Level {
         let mut n = Vec::with_capacity(cells.len());
         let mut nbr = Vec::with_capacity(cells.len());
         for &i in cells {
-            let (x, y) = (i % w, i / w);
             let (mut count, mut nb, mut m) = (0u8, [NONE; 4], 0);
-            for j in [
-                (x > 0).then(|| i - 1),
-                (x + 1 < w).then(|| i + 1),
-                (y > 0).then(|| i - w),
-                (y + 1 < h).then(|| i + w),
-            ]
-            .into_iter()
-            .flatten()
-            {
+            for j in window_neighbours(i, w, h) {
                 count += 1;
                 if idx[j] != NONE {
                     nb[m] = idx[j];
@@ -206,17 +210,8 @@ fn multigrid(
     let mut r: Vec<f64> = voids
         .iter()
         .map(|&i| {
-            let (x, y) = (i % w, i / w);
             let (mut n, mut sum) = (0u32, 0f64);
-            for j in [
-                (x > 0).then(|| i - 1),
-                (x + 1 < w).then(|| i + 1),
-                (y > 0).then(|| i - w),
-                (y + 1 < h).then(|| i + w),
-            ]
-            .into_iter()
-            .flatten()
-            {
+            for j in window_neighbours(i, w, h) {
                 n += 1;
                 sum += grid[j];
             }

@@ -5,31 +5,12 @@
 //! a compute shader on whatever adapter wgpu finds (lavapipe in CI); prints a
 //! note and passes when no adapter exists.
 
+mod common;
+
 use planet_view::camera_relative::{
     camera_relative, low_part_f16, low_part_f32, split_f32, SplitOffset, WGSL,
 };
-use planet_view::HeadlessRenderer;
 use wgpu::util::DeviceExt;
-
-fn renderer() -> Option<HeadlessRenderer> {
-    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        let dir = std::env::temp_dir().join("planet-view-xdg");
-        let _ = std::fs::create_dir_all(&dir);
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700));
-        }
-        std::env::set_var("XDG_RUNTIME_DIR", &dir);
-    }
-    match HeadlessRenderer::new(4, 4) {
-        Ok(r) => Some(r),
-        Err(e) => {
-            eprintln!("NOTE: skipping GPU test, no adapter: {e}");
-            None
-        }
-    }
-}
 
 /// Deterministic cases: block-relative positions of blocks from 1 m to
 /// 10 000 km, eyes from 0 to 100 km from the vertex.
@@ -54,9 +35,10 @@ fn cases(n: usize) -> Vec<([f64; 3], [f64; 3])> {
 
 #[test]
 fn gpu_camera_relative_matches_the_cpu_replica_bit_for_bit() {
-    let Some(h) = renderer() else { return };
+    let Some(h) = common::headless(4, 4) else {
+        return;
+    };
     let (device, queue) = (h.renderer.device(), h.renderer.queue());
-    eprintln!("adapter: {}", h.adapter_name);
 
     let cases = cases(4096);
     let mut input: Vec<f32> = Vec::with_capacity(cases.len() * 16);

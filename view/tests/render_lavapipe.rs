@@ -1,6 +1,8 @@
 //! Rendering tests on whatever adapter wgpu finds (lavapipe in CI). They
 //! print a note and pass when no adapter exists.
 
+mod common;
+
 use planet_core::cube::plane_from_angle;
 use planet_core::{BlockId, Datum, Edge, Face};
 use planet_view::masks::Masks;
@@ -17,26 +19,7 @@ const W: usize = 16;
 const SIZE: u32 = 256;
 
 fn renderer() -> Option<HeadlessRenderer> {
-    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        let dir = std::env::temp_dir().join("planet-view-xdg");
-        let _ = std::fs::create_dir_all(&dir);
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700));
-        }
-        std::env::set_var("XDG_RUNTIME_DIR", &dir);
-    }
-    match HeadlessRenderer::new(SIZE, SIZE) {
-        Ok(r) => {
-            eprintln!("adapter: {}", r.adapter_name);
-            Some(r)
-        }
-        Err(e) => {
-            eprintln!("NOTE: skipping GPU test, no adapter: {e}");
-            None
-        }
-    }
+    common::headless(SIZE, SIZE)
 }
 
 fn datum() -> Datum {

@@ -1,0 +1,30 @@
+//! Shared by the GPU test files: a headless renderer on whatever adapter
+//! wgpu finds (lavapipe in CI), or `None` with a note when there is none.
+
+use planet_view::HeadlessRenderer;
+
+/// A `width × height` headless renderer, with `XDG_RUNTIME_DIR` set to a
+/// private temporary directory when the environment has none (Mesa warns
+/// without one).
+pub fn headless(width: u32, height: u32) -> Option<HeadlessRenderer> {
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        let dir = std::env::temp_dir().join("planet-view-xdg");
+        let _ = std::fs::create_dir_all(&dir);
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700));
+        }
+        std::env::set_var("XDG_RUNTIME_DIR", &dir);
+    }
+    match HeadlessRenderer::new(width, height) {
+        Ok(r) => {
+            eprintln!("adapter: {}", r.adapter_name);
+            Some(r)
+        }
+        Err(e) => {
+            eprintln!("NOTE: skipping GPU test, no adapter: {e}");
+            None
+        }
+    }
+}
