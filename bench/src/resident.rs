@@ -130,6 +130,8 @@ pub fn run(a: ResidentArgs) -> Result<()> {
     for (name, turn) in [("static camera", 0.0), ("turning camera (0.5°/frame)", 0.5)] {
         let mut v = Vec::with_capacity(a.frames);
         let mut wall = Vec::with_capacity(a.frames);
+        let rebuilds = client.selector().rebuilds();
+        let mut ops = 0;
         for k in 0..a.frames {
             for (id, bytes) in server.tick(&db) {
                 client.deliver(id, Ok(bytes));
@@ -140,8 +142,13 @@ pub fn run(a: ResidentArgs) -> Result<()> {
             let out = client.frame(&camera, 1.0 / 30.0);
             v.push(thread_cpu().saturating_sub(c0).as_secs_f64() * 1e3);
             wall.push(w0.elapsed().as_secs_f64() * 1e3);
+            ops += out.stats.splits + out.stats.merges + out.stats.refines_applied;
             server.submit(&out);
         }
+        eprintln!(
+            "{name}: {ops} splits + merges + refines, {} selection cache rebuilds",
+            client.selector().rebuilds() - rebuilds
+        );
         let (mean, med, p99, max) = stats(&mut v);
         let (wmean, _, _, _) = stats(&mut wall);
         let line = format!(

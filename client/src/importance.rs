@@ -91,22 +91,44 @@ pub fn wants_merge(importance: f64) -> bool {
 /// Screen-space error in pixels of a geometric error `error` metres seen at
 /// `distance` metres: `ε·H / (2·d·tan(fov_y/2))`, finite for any input.
 pub fn screen_space_error(error: f64, distance: f64, viewport_height_px: f64, fov_y: f64) -> f64 {
-    let d = if distance.is_finite() {
-        distance.max(1e-3)
-    } else {
-        f64::MAX
-    };
-    let t = (fov_y * 0.5).tan().abs().max(1e-9);
-    let e = if error.is_finite() {
-        error.max(0.0)
-    } else {
-        0.0
-    };
-    let rho = e * viewport_height_px.max(0.0) / (2.0 * d * t);
-    if rho.is_finite() {
-        rho
-    } else {
-        f64::MAX
+    ScreenError::new(viewport_height_px, fov_y).of(error, distance)
+}
+
+/// [`screen_space_error`] for one camera, with the tangent computed once
+/// (the same result for every block).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScreenError {
+    h: f64,
+    t: f64,
+}
+
+impl ScreenError {
+    /// For a viewport `viewport_height_px` high with vertical fov `fov_y`.
+    pub fn new(viewport_height_px: f64, fov_y: f64) -> ScreenError {
+        ScreenError {
+            h: viewport_height_px.max(0.0),
+            t: (fov_y * 0.5).tan().abs().max(1e-9),
+        }
+    }
+
+    /// Screen-space error in pixels of `error` metres at `distance` metres.
+    pub fn of(&self, error: f64, distance: f64) -> f64 {
+        let d = if distance.is_finite() {
+            distance.max(1e-3)
+        } else {
+            f64::MAX
+        };
+        let e = if error.is_finite() {
+            error.max(0.0)
+        } else {
+            0.0
+        };
+        let rho = e * self.h / (2.0 * d * self.t);
+        if rho.is_finite() {
+            rho
+        } else {
+            f64::MAX
+        }
     }
 }
 
