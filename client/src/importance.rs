@@ -59,9 +59,10 @@ pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -
     (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
 }
 
-/// The LOD to render: `ceil(importance)` clamped to `[0, 1]`.
+/// The LOD to render: `ceil(importance)` clamped to `[0, 1]`
+/// (`ceil(x) ≥ 1` exactly when `x > 0`, also false for NaN).
 pub fn selected_lod(importance: f64) -> u8 {
-    if importance.ceil() >= 1.0 {
+    if importance > 0.0 {
         1
     } else {
         0
@@ -83,9 +84,10 @@ pub fn split_importance(importance: f64) -> f64 {
     -importance
 }
 
-/// Whether a split block should merge: a LOD other than its last suffices.
+/// Whether a split block should merge: a LOD other than its last suffices
+/// (`ceil(importance) ≥ 1`, i.e. `importance > 0`).
 pub fn wants_merge(importance: f64) -> bool {
-    importance.ceil() >= 1.0
+    importance > 0.0
 }
 
 /// Screen-space error in pixels of a geometric error `error` metres seen at
@@ -158,6 +160,22 @@ mod tests {
         assert_eq!(selected_lod(-3.0), 0);
         assert!(wants_split(-1.5) && !wants_split(-1.0));
         assert!(wants_merge(0.1) && !wants_merge(0.0));
+        for x in [
+            -1.5,
+            -1.0,
+            -0.5,
+            -0.0,
+            0.0,
+            1e-300,
+            0.5,
+            1.0,
+            1.5,
+            f64::NAN,
+            f64::INFINITY,
+        ] {
+            assert_eq!(selected_lod(x) == 1, x.ceil() >= 1.0, "{x}");
+            assert_eq!(wants_merge(x), x.ceil() >= 1.0, "{x}");
+        }
         assert_eq!(importance(0.0, 1.0, 64.0, 1.0), IMPORTANCE_NEAR);
         assert_eq!(importance(f64::NAN, 1.0, 64.0, 1.0), IMPORTANCE_NEAR);
         assert_eq!(importance(1.0, 1.0, 64.0, 0.0), IMPORTANCE_FAR);

@@ -132,6 +132,14 @@ fn selector_notices_another_tree() {
     let copy = c.tree().clone();
     assert_eq!(sel.select(&copy, &view, 1e5), select(&copy, &view, 1e5));
     assert_eq!(sel.rebuilds(), r0 + 2);
+    // Same tree and eye, other quality factors and viewports: the kept
+    // importances and errors are not reused.
+    for (qf, h) in [(1e3, 1080.0), (1e7, 1080.0), (1e7, 720.0), (1e5, 720.0)] {
+        let mut cam = cam;
+        cam.viewport_height_px = h;
+        let view = View::new(&cam, r_min, r_max);
+        assert_eq!(sel.select(&copy, &view, qf), select(&copy, &view, qf));
+    }
 }
 
 proptest! {
