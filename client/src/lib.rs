@@ -14,7 +14,8 @@
 //!   horizon occlusion.
 //! - [`request_queue`]: fixed-size priority queues with per-frame
 //!   resubmission and cancellation (§3.5.2).
-//! - [`selection`]: the per-frame traversal (draw list, triggers).
+//! - [`selection`]: the per-frame traversal (draw list, triggers), and its
+//!   cached form [`selection::Selector`] that the client runs.
 //! - [`client`]: the frame loop, decode workers, and the interface a network
 //!   layer and a renderer drive.
 //! - [`stats`]: per-frame and cumulative statistics.
