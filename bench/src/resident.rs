@@ -3,8 +3,10 @@
 //! selection, triggers, request queue, split/merge selection) with at least
 //! 10 000 resident blocks. The tree is grown over a synthetic database
 //! (`planet_client::testdb`, no network, inline decoding), then frames are
-//! timed with the thread's CPU clock for a static and a slowly turning
-//! camera.
+//! timed with the thread's CPU clock for a static camera, a camera turning
+//! on the spot (the eye stays: importance is reused, only visibility
+//! changes) and a moving camera (the eye drifts 0.01° of latitude, about
+//! 1.1 km, per frame: everything is recomputed and the tree changes).
 
 use crate::thread_cpu;
 use anyhow::{bail, Result};
@@ -75,11 +77,11 @@ pub fn run(a: ResidentArgs) -> Result<()> {
     };
     let mut client = Client::new(db.header.clone(), cfg)?;
     let mut server = FakeServer::new(1);
-    let cam = |heading: f64| {
+    let cam_at = |heading: f64, lat: f64| {
         camera_from_keyframe(
             &Keyframe {
                 t: 0.0,
-                lat_deg: 30.0,
+                lat_deg: lat,
                 lon_deg: 10.0,
                 alt_m: 9_000_000.0,
                 heading_deg: heading,
@@ -93,6 +95,7 @@ pub fn run(a: ResidentArgs) -> Result<()> {
             1080.0,
         )
     };
+    let cam = |heading: f64| cam_at(heading, 30.0);
     // Grow the tree until it is stable.
     let camera = cam(0.0);
     let mut quiet = 0;
@@ -128,21 +131,32 @@ pub fn run(a: ResidentArgs) -> Result<()> {
         );
     }
     let mut report = Vec::new();
-    for (name, turn) in [("static camera", 0.0), ("turning camera (0.5°/frame)", 0.5)] {
+    for (name, turn, drift) in [
+        ("static camera", 0.0, 0.0),
+        ("turning camera (0.5°/frame)", 0.5, 0.0),
+        ("moving camera (0.01° lat/frame)", 0.0, 0.01),
+    ] {
         let mut v = Vec::with_capacity(a.frames);
         let mut wall = Vec::with_capacity(a.frames);
+        let rebuilds = client.selector().rebuilds();
+        let mut ops = 0;
         for k in 0..a.frames {
             for (id, bytes) in server.tick(&db) {
                 client.deliver(id, Ok(bytes));
             }
-            let camera = cam(turn * k as f64);
+            let camera = cam_at(turn * k as f64, 30.0 + drift * k as f64);
             let w0 = Instant::now();
             let c0 = thread_cpu();
             let out = client.frame(&camera, 1.0 / 30.0);
             v.push(thread_cpu().saturating_sub(c0).as_secs_f64() * 1e3);
             wall.push(w0.elapsed().as_secs_f64() * 1e3);
+            ops += out.stats.splits + out.stats.merges + out.stats.refines_applied;
             server.submit(&out);
         }
+        eprintln!(
+            "{name}: {ops} splits + merges + refines, {} selection cache rebuilds",
+            client.selector().rebuilds() - rebuilds
+        );
         let (mean, med, p99, max) = stats(&mut v);
         let (wmean, _, _, _) = stats(&mut wall);
         let line = format!(

@@ -25,7 +25,7 @@
 
 use crate::quality::{QualityConfig, QualityController};
 use crate::request_queue::{select_tree_ops, OpKind, QueueConfig, RequestQueue, TreeOp};
-use crate::selection::{select, DrawBlock};
+use crate::selection::{DrawBlock, Selector};
 use crate::stats::{FrameStats, Totals};
 use crate::tree::{
     decode_record, Decoded, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
@@ -146,6 +146,7 @@ type Outstanding = Arc<(Mutex<usize>, Condvar)>;
 /// The streaming client (no network, no GPU).
 pub struct Client {
     tree: PartialTree,
+    selector: Selector,
     queue: RequestQueue,
     quality: QualityController,
     config: ClientConfig,
@@ -207,6 +208,7 @@ impl Client {
         };
         Ok(Client {
             tree,
+            selector: Selector::new(),
             queue: RequestQueue::new(config.queue),
             quality: QualityController::new(config.quality),
             config,
@@ -231,6 +233,11 @@ impl Client {
     /// The partial tree.
     pub fn tree(&self) -> &PartialTree {
         &self.tree
+    }
+
+    /// The selection cache (e.g. its rebuild count).
+    pub fn selector(&self) -> &Selector {
+        &self.selector
     }
 
     /// The request queue.
@@ -384,7 +391,7 @@ impl Client {
         let qf = self.quality.update(dt, self.last_triangles as f64);
         // 3. Selection.
         let view = View::new(camera, self.r_min, self.r_max);
-        let sel = select(&self.tree, &view, qf);
+        let sel = self.selector.select(&self.tree, &view, qf);
         // 4. Requests.
         let tree = &self.tree;
         let mut cancel = self.queue.retain_relevant(|t, b| tree.wants_refine(t, b));

@@ -59,9 +59,10 @@ pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -
     (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
 }
 
-/// The LOD to render: `ceil(importance)` clamped to `[0, 1]`.
+/// The LOD to render: `ceil(importance)` clamped to `[0, 1]`
+/// (`ceil(x) ≥ 1` exactly when `x > 0`, also false for NaN).
 pub fn selected_lod(importance: f64) -> u8 {
-    if importance.ceil() >= 1.0 {
+    if importance > 0.0 {
         1
     } else {
         0
@@ -83,30 +84,53 @@ pub fn split_importance(importance: f64) -> f64 {
     -importance
 }
 
-/// Whether a split block should merge: a LOD other than its last suffices.
+/// Whether a split block should merge: a LOD other than its last suffices
+/// (`ceil(importance) ≥ 1`, i.e. `importance > 0`).
 pub fn wants_merge(importance: f64) -> bool {
-    importance.ceil() >= 1.0
+    importance > 0.0
 }
 
 /// Screen-space error in pixels of a geometric error `error` metres seen at
 /// `distance` metres: `ε·H / (2·d·tan(fov_y/2))`, finite for any input.
 pub fn screen_space_error(error: f64, distance: f64, viewport_height_px: f64, fov_y: f64) -> f64 {
-    let d = if distance.is_finite() {
-        distance.max(1e-3)
-    } else {
-        f64::MAX
-    };
-    let t = (fov_y * 0.5).tan().abs().max(1e-9);
-    let e = if error.is_finite() {
-        error.max(0.0)
-    } else {
-        0.0
-    };
-    let rho = e * viewport_height_px.max(0.0) / (2.0 * d * t);
-    if rho.is_finite() {
-        rho
-    } else {
-        f64::MAX
+    ScreenError::new(viewport_height_px, fov_y).of(error, distance)
+}
+
+/// [`screen_space_error`] for one camera, with the tangent computed once
+/// (the same result for every block).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScreenError {
+    h: f64,
+    t: f64,
+}
+
+impl ScreenError {
+    /// For a viewport `viewport_height_px` high with vertical fov `fov_y`.
+    pub fn new(viewport_height_px: f64, fov_y: f64) -> ScreenError {
+        ScreenError {
+            h: viewport_height_px.max(0.0),
+            t: (fov_y * 0.5).tan().abs().max(1e-9),
+        }
+    }
+
+    /// Screen-space error in pixels of `error` metres at `distance` metres.
+    pub fn of(&self, error: f64, distance: f64) -> f64 {
+        let d = if distance.is_finite() {
+            distance.max(1e-3)
+        } else {
+            f64::MAX
+        };
+        let e = if error.is_finite() {
+            error.max(0.0)
+        } else {
+            0.0
+        };
+        let rho = e * self.h / (2.0 * d * self.t);
+        if rho.is_finite() {
+            rho
+        } else {
+            f64::MAX
+        }
     }
 }
 
@@ -136,6 +160,22 @@ mod tests {
         assert_eq!(selected_lod(-3.0), 0);
         assert!(wants_split(-1.5) && !wants_split(-1.0));
         assert!(wants_merge(0.1) && !wants_merge(0.0));
+        for x in [
+            -1.5,
+            -1.0,
+            -0.5,
+            -0.0,
+            0.0,
+            1e-300,
+            0.5,
+            1.0,
+            1.5,
+            f64::NAN,
+            f64::INFINITY,
+        ] {
+            assert_eq!(selected_lod(x) == 1, x.ceil() >= 1.0, "{x}");
+            assert_eq!(wants_merge(x), x.ceil() >= 1.0, "{x}");
+        }
         assert_eq!(importance(0.0, 1.0, 64.0, 1.0), IMPORTANCE_NEAR);
         assert_eq!(importance(f64::NAN, 1.0, 64.0, 1.0), IMPORTANCE_NEAR);
         assert_eq!(importance(1.0, 1.0, 64.0, 0.0), IMPORTANCE_FAR);

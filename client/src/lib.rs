@@ -16,7 +16,8 @@
 //!   resubmission and cancellation (§3.5.2).
 //! - [`view_prediction`]: the camera extrapolated over the request latency,
 //!   so no block about to leave the view is requested.
-//! - [`selection`]: the per-frame traversal (draw list, triggers).
+//! - [`selection`]: the per-frame traversal (draw list, triggers), and its
+//!   cached form [`selection::Selector`] that the client runs.
 //! - [`client`]: the frame loop, decode workers, and the interface a network
 //!   layer and a renderer drive.
 //! - [`stats`]: per-frame and cumulative statistics.

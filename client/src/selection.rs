@@ -26,13 +26,15 @@
 
 use crate::importance::{
     block_distance, importance, refine_importance, screen_space_error, selected_lod,
-    split_importance, wants_merge, wants_split,
+    split_importance, wants_merge, wants_split, ScreenError,
 };
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
-use crate::tree::{Blocked, FastMap, PartialTree};
-use crate::visibility::View;
-use planet_core::format::Tree;
+use crate::tree::{Blocked, FastMap, Node, PartialTree, TreeChanges, TreeStamp};
+use crate::visibility::{BlockBounds, View};
+use glam::DVec3;
+use planet_core::format::{ChildRef, Tree};
 use planet_core::{BlockId, Edge, Face};
+use std::sync::Arc;
 
 /// A neighbour's LOD across one edge of a drawn block.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -317,4 +319,666 @@ impl Ctx<'_> {
             Err(_) => {}
         }
     }
+}
+
+/// No node (index sentinel).
+const NONE: u32 = u32::MAX;
+/// Not drawn (per-frame LOD sentinel).
+const NOT_DRAWN: u8 = u8::MAX;
+
+/// Per-frame inputs of one elevation node of the cached flat tree
+/// (pre-order, the traversal order of [`select`]), kept small: the frame
+/// loop streams through them.
+#[derive(Debug, Clone, Copy)]
+struct Hot {
+    /// A ball holding the bounding points of the node's whole subtree.
+    sub: (DVec3, f64),
+    /// Bounding-box centre and footprint radius (importance, §4.2.4).
+    centre: DVec3,
+    radius: f64,
+    parent: u32,
+    split: bool,
+    /// Its last LOD (leaves).
+    lod: u8,
+    /// `Node::can_split_data().is_ok()`.
+    splittable: bool,
+}
+
+/// What the frame loop reads of a node only when it is undecided, drawn or
+/// triggers something.
+#[derive(Debug, Clone)]
+struct Cold {
+    /// A ball holding the node's bounding points and its parts' points.
+    own: (DVec3, f64),
+    bounds: Arc<BlockBounds>,
+    /// Geometric error at LOD 1 (own record) and LOD 0 (children's records).
+    err1: f64,
+    err0: f64,
+    record: ChildRef,
+    /// Deepest colour node covering this block (leaves).
+    colour: Binding,
+}
+
+/// Where a drawn block's colour comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Binding {
+    None,
+    /// A colour leaf of the flat tree.
+    Node(u32),
+    /// A colour node that is split or that the traversal does not reach
+    /// (only in a tree whose binding invariant is broken): its LOD is read
+    /// from the tree, as [`select`] does.
+    Tree(BlockId),
+}
+
+/// One colour node of the cached flat tree.
+#[derive(Debug, Clone)]
+struct CNode {
+    id: BlockId,
+    /// The elevation node with the same id (bounds and visibility, §4.4.3).
+    elev: u32,
+    split: bool,
+    lod: u8,
+    splittable: bool,
+    record: ChildRef,
+}
+
+/// A ball holding two balls (slightly enlarged for rounding).
+fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
+    let d = (b.0 - a.0).length();
+    if d + b.1 <= a.1 {
+        return a;
+    }
+    if d + a.1 <= b.1 {
+        return b;
+    }
+    let r = (d + a.1 + b.1) * 0.5;
+    let c = if d > 0.0 {
+        a.0 + (b.0 - a.0) * ((r - a.1) / d)
+    } else {
+        a.0
+    };
+    (c, r * (1.0 + 1e-9) + 1e-3)
+}
+
+/// The per-frame selection with a cache of the tree (thesis §3.6,
+/// Alg. 3.1): the work per frame is a linear pass over compact arrays.
+///
+/// On a valid tree ([`PartialTree::validate`]) it gives exactly the
+/// [`Selection`] of [`select`] (same draw list, loads and operations, in the
+/// same order, bit for bit; `client/tests/selector.rs` compares them frame
+/// by frame while the tree grows, is refined, splits and merges, and the
+/// camera moves, turns and stands still), faster:
+///
+/// - the trees are flattened into arrays in traversal (pre-)order with the
+///   per-node inputs of importance (§3.6.2, §4.2.4), errors, split
+///   readiness and records; the neighbours of every node (Alg. 4.1,
+///   top-down from the parent's) and the colour binding of every leaf
+///   (§4.4.1) follow from the flat links. The arrays are rebuilt when nodes
+///   are added or removed and patched when blocks are refined
+///   ([`PartialTree::changes_since`]); a rebuild reads each tree node once;
+/// - visibility (§3.6.1, §4.2.1, §4.5.4) is hierarchical: a ball holding a
+///   whole subtree's bounding points decides the subtree at once when it
+///   lies inside the frustum and in front of the horizon (all visible) or
+///   outside a plane or in the horizon's shadow (all hidden)
+///   ([`View::classify_sphere`]); an undecided block is first tried with
+///   the bounding point that proved it visible last time
+///   ([`View::point_witnesses_visible`]), then with the exact test;
+/// - importance (Eq. 3.2–3.3) and the screen-space error depend on the eye,
+///   not on the view direction: they are kept per node while the eye,
+///   quality factor, near distance and viewport stay the same (a camera
+///   turning on the spot recomputes only visibility).
+#[derive(Debug, Default)]
+pub struct Selector {
+    stamp: Option<TreeStamp>,
+    hot: Vec<Hot>,
+    cold: Vec<Cold>,
+    ids: Vec<BlockId>,
+    cnodes: Vec<CNode>,
+    /// Per elevation node: children (by child index), the deepest nodes
+    /// covering the same-level neighbours (`Edge::ALL` order), and the
+    /// colour node with the same id.
+    children: Vec<[u32; 4]>,
+    nb: Vec<[u32; 4]>,
+    col_of_elev: Vec<u32>,
+    roots: [u32; 6],
+    /// Per node: the bounding point last found in front of the horizon.
+    hint: Vec<u32>,
+    /// Per node: a bounding point that proved it visible last time.
+    witness: Vec<Option<DVec3>>,
+    /// Per frame: 0 hidden, 1 visible, 2 visible with the whole subtree.
+    state: Vec<u8>,
+    /// Per frame: the drawn LOD of visible leaves.
+    drawn: Vec<u8>,
+    cdrawn: Vec<u8>,
+    draw_idx: Vec<u32>,
+    last_draw: usize,
+    rebuilds: u64,
+    /// Importance and screen-space error per elevation node and importance
+    /// per colour node, valid while the inputs besides the node are the
+    /// same ([`MemoKey`]; they do not depend on the view direction).
+    memo_key: Option<MemoKey>,
+    memo_gen: u64,
+    memo: Vec<Memo>,
+    cmemo: Vec<(u64, f64)>,
+}
+
+/// What importance (Eq. 3.2–3.3) and the screen-space error depend on
+/// besides the node: eye position, quality factor, near distance, viewport
+/// height and field of view (bit patterns, so any change counts).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct MemoKey([u64; 7]);
+
+impl MemoKey {
+    fn new(view: &View, qf: f64) -> MemoKey {
+        let e = view.camera.eye;
+        MemoKey([
+            e.x.to_bits(),
+            e.y.to_bits(),
+            e.z.to_bits(),
+            qf.to_bits(),
+            view.near.to_bits(),
+            view.camera.viewport_height_px.to_bits(),
+            view.camera.fov_y.to_bits(),
+        ])
+    }
+}
+
+/// Memoised per-node values (valid when `gen` is the selector's).
+#[derive(Debug, Clone, Copy, Default)]
+struct Memo {
+    gen: u64,
+    imp: f64,
+    /// The LOD `sse` was computed for (`NOT_DRAWN`: none).
+    sse_lod: u8,
+    sse: f64,
+}
+
+impl Selector {
+    /// An empty cache (built on the first frame).
+    pub fn new() -> Selector {
+        Selector::default()
+    }
+
+    /// Times the cache was rebuilt from the tree (statistics and tests).
+    pub fn rebuilds(&self) -> u64 {
+        self.rebuilds
+    }
+
+    fn update(&mut self, tree: &PartialTree) {
+        let changes = match &self.stamp {
+            None => TreeChanges::Structure,
+            Some(s) => tree.changes_since(s),
+        };
+        match changes {
+            TreeChanges::Structure => self.rebuild(tree),
+            TreeChanges::Refined(list) => {
+                for (kind, id) in list {
+                    self.patch(tree, *kind, id);
+                }
+            }
+        }
+        self.stamp = Some(tree.stamp());
+    }
+
+    /// The deepest node of the flat tree containing `target`, descending
+    /// from node `from` (which contains it): what [`select`]'s lookups find
+    /// among the traversed nodes.
+    fn covering_from(&self, mut from: u32, target: &BlockId) -> u32 {
+        if from as usize >= self.ids.len() {
+            return NONE;
+        }
+        loop {
+            let level = self.ids[from as usize].level;
+            if !self.hot[from as usize].split || level >= target.level {
+                return from;
+            }
+            let a = target.ancestor(level + 1);
+            let c = self.children[from as usize][a.child_index()];
+            if c == NONE || self.ids[c as usize] != a {
+                return from;
+            }
+            from = c;
+        }
+    }
+
+    /// The index of elevation node `id`, if the traversal reaches it.
+    fn find(&self, id: &BlockId) -> Option<usize> {
+        let c = self.covering_from(self.roots[id.face.index() as usize], id);
+        (c != NONE && self.ids[c as usize] == *id).then_some(c as usize)
+    }
+
+    fn patch(&mut self, tree: &PartialTree, kind: Tree, id: &BlockId) {
+        let Some(n) = tree.tree(kind).and_then(|t| t.get(id)) else {
+            return;
+        };
+        let Some(i) = self.find(id) else { return };
+        match kind {
+            Tree::Elevation => {
+                let h = &mut self.hot[i];
+                h.split = n.split;
+                h.lod = n.lod;
+                h.splittable = n.can_split_data().is_ok();
+                self.cold[i].err0 = child_error(n);
+                self.memo[i].sse_lod = NOT_DRAWN;
+            }
+            Tree::Colour => {
+                let j = self.col_of_elev[i];
+                if j != NONE {
+                    let c = &mut self.cnodes[j as usize];
+                    c.split = n.split;
+                    c.lod = n.lod;
+                    c.splittable = n.can_split_data().is_ok();
+                }
+            }
+        }
+    }
+
+    /// Flatten the trees (pre-order, as [`select`] traverses them). One
+    /// hash lookup per node (the tree's own map); neighbours, colour nodes
+    /// and bindings follow from the flat parent/children links.
+    fn rebuild(&mut self, tree: &PartialTree) {
+        self.rebuilds += 1;
+        let old_ids = std::mem::take(&mut self.ids);
+        let old_hint = std::mem::take(&mut self.hint);
+        let old_witness = std::mem::take(&mut self.witness);
+        let old_cold = std::mem::take(&mut self.cold);
+        self.hot.clear();
+        self.children.clear();
+        self.nb.clear();
+        self.col_of_elev.clear();
+        self.memo.clear();
+        self.cmemo.clear();
+        self.cnodes.clear();
+        self.roots = [NONE; 6];
+        let et = tree.elevation();
+        let mut stack: Vec<(BlockId, u32)> = Vec::with_capacity(64);
+        for f in Face::ALL {
+            stack.push((BlockId::root(f), NONE));
+            while let Some((id, parent)) = stack.pop() {
+                let Some(n) = et.get(&id) else { continue };
+                let Some(b) = n.bounds.as_ref() else { continue };
+                let i = self.hot.len() as u32;
+                if parent == NONE {
+                    self.roots[f.index() as usize] = i;
+                } else {
+                    self.children[parent as usize][id.child_index()] = i;
+                }
+                let own = b.parts.iter().fold((b.centre, b.sphere_radius), |s, p| {
+                    ball_union(s, (p.centre, p.sphere_radius))
+                });
+                self.hot.push(Hot {
+                    sub: own,
+                    centre: b.centre,
+                    radius: b.radius,
+                    parent,
+                    split: n.split,
+                    lod: n.lod,
+                    splittable: n.can_split_data().is_ok(),
+                });
+                self.cold.push(Cold {
+                    own,
+                    bounds: b.clone(),
+                    err1: n.record.error as f64,
+                    err0: child_error(n),
+                    record: n.record,
+                    colour: Binding::None,
+                });
+                self.ids.push(id);
+                self.children.push([NONE; 4]);
+                self.hint.push(0);
+                self.witness.push(None);
+                self.memo.push(Memo {
+                    gen: 0,
+                    imp: 0.0,
+                    sse_lod: NOT_DRAWN,
+                    sse: 0.0,
+                });
+                if n.split {
+                    stack.extend(id.children().map(|c| (c, i)));
+                }
+            }
+        }
+        let n = self.hot.len();
+        // Keep the hints and witnesses of nodes that stay (same bounds).
+        for (k, id) in old_ids.iter().enumerate() {
+            if old_hint[k] == 0 && old_witness[k].is_none() {
+                continue;
+            }
+            if let Some(i) = self.find(id) {
+                if Arc::ptr_eq(&self.cold[i].bounds, &old_cold[k].bounds) {
+                    self.hint[i] = old_hint[k];
+                    self.witness[i] = old_witness[k];
+                }
+            }
+        }
+        // Subtree balls, children (later in pre-order) first.
+        for i in (1..n).rev() {
+            let (p, s) = (self.hot[i].parent, self.hot[i].sub);
+            if p != NONE {
+                let h = &mut self.hot[p as usize];
+                h.sub = ball_union(h.sub, s);
+            }
+        }
+        // Neighbours (Alg. 4.1 top-down): the same-level neighbour of a
+        // child is its sibling or a child of its parent's neighbour.
+        for i in 0..n {
+            let id = self.ids[i];
+            let p = self.hot[i].parent;
+            let mut nb = [NONE; 4];
+            for (k, e) in Edge::ALL.iter().enumerate() {
+                let same = id.neighbour(*e).0;
+                let start = match same.parent() {
+                    Some(sp) if p != NONE && sp == self.ids[p as usize] => p,
+                    Some(sp) if p != NONE && self.ids[p as usize].neighbour(*e).0 == sp => {
+                        self.nb[p as usize][k]
+                    }
+                    _ => self.roots[same.face.index() as usize],
+                };
+                nb[k] = self.covering_from(start, &same);
+            }
+            self.nb.push(nb);
+        }
+        // Colour nodes, with their elevation nodes (same ids).
+        self.col_of_elev.resize(n, NONE);
+        if let Some(ct) = tree.colour() {
+            for f in Face::ALL {
+                stack.push((BlockId::root(f), self.roots[f.index() as usize]));
+                while let Some((id, elev)) = stack.pop() {
+                    let Some(cn) = ct.get(&id) else { continue };
+                    if elev == NONE {
+                        continue;
+                    }
+                    self.col_of_elev[elev as usize] = self.cnodes.len() as u32;
+                    self.cmemo.push((0, 0.0));
+                    self.cnodes.push(CNode {
+                        id,
+                        elev,
+                        split: cn.split,
+                        lod: cn.lod,
+                        splittable: cn.can_split_data().is_ok(),
+                        record: cn.record,
+                    });
+                    if cn.split {
+                        let ec = self.children[elev as usize];
+                        stack.extend((0..4).map(|k| {
+                            let c = id.child(k);
+                            let e = ec[k];
+                            let e = if e != NONE && self.ids[e as usize] == c {
+                                e
+                            } else {
+                                NONE
+                            };
+                            (c, e)
+                        }));
+                    }
+                }
+            }
+            // Colour bindings: the deepest colour node on each leaf's
+            // elevation path (every colour node has its elevation node).
+            let mut cov = vec![NONE; n];
+            for i in 0..n {
+                let j = self.col_of_elev[i];
+                cov[i] = if j != NONE {
+                    j
+                } else {
+                    match self.hot[i].parent {
+                        NONE => NONE,
+                        p => cov[p as usize],
+                    }
+                };
+                if !self.hot[i].split {
+                    self.cold[i].colour = match cov[i] {
+                        NONE => Binding::None,
+                        j if self.cnodes[j as usize].split => {
+                            Binding::Tree(self.cnodes[j as usize].id)
+                        }
+                        j => Binding::Node(j),
+                    };
+                }
+            }
+        }
+    }
+
+    /// Select the LODs to draw and trigger requests for one frame: the same
+    /// result as [`select`]`(tree, view, qf)`.
+    pub fn select(&mut self, tree: &PartialTree, view: &View, qf: f64) -> Selection {
+        self.update(tree);
+        let mut cx = Ctx {
+            tree,
+            out: Selection {
+                draw: Vec::with_capacity(self.last_draw),
+                ..Selection::default()
+            },
+        };
+        let et = tree.elevation();
+        let ew = et.width as f64;
+        let eye = view.camera.eye;
+        let sse = ScreenError::new(view.camera.viewport_height_px, view.camera.fov_y);
+        // Generation 0 is never valid, so fresh entries are recomputed.
+        let key = MemoKey::new(view, qf);
+        if self.memo_key != Some(key) || self.memo_gen == 0 {
+            self.memo_key = Some(key);
+            self.memo_gen += 1;
+        }
+        let gen = self.memo_gen;
+        let n = self.hot.len();
+        self.state.clear();
+        self.state.resize(n, 0);
+        self.drawn.clear();
+        self.drawn.resize(n, NOT_DRAWN);
+        self.draw_idx.clear();
+        for (i, h) in self.hot.iter().enumerate() {
+            let st = match h.parent {
+                NONE => 1,
+                p => self.state[p as usize],
+            };
+            let st = match st {
+                0 => 0,
+                2 => 2,
+                _ => match view.classify_sphere(h.sub.0, h.sub.1) {
+                    Some(true) => 2,
+                    Some(false) => 0,
+                    None => {
+                        let c = &self.cold[i];
+                        // A leaf's subtree ball is its own ball.
+                        let own = if h.split {
+                            view.classify_sphere(c.own.0, c.own.1)
+                        } else {
+                            None
+                        };
+                        match own {
+                            Some(v) => v as u8,
+                            None => exact_visible(view, c, &mut self.hint[i], &mut self.witness[i])
+                                as u8,
+                        }
+                    }
+                },
+            };
+            self.state[i] = st;
+            let m = &mut self.memo[i];
+            if m.gen != gen {
+                m.gen = gen;
+                m.imp = importance(block_distance(eye, h.centre, h.radius), h.radius, ew, qf);
+                m.sse_lod = NOT_DRAWN;
+            }
+            let imp = m.imp;
+            if h.split {
+                if wants_merge(imp) && tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok() {
+                    cx.out.ops.push(TreeOp {
+                        kind: OpKind::Merge,
+                        tree: Tree::Elevation,
+                        block: self.ids[i],
+                        importance: imp,
+                    });
+                }
+                continue;
+            }
+            if st == 0 {
+                continue;
+            }
+            let id = self.ids[i];
+            let sel = selected_lod(imp);
+            let lod = sel.max(h.lod);
+            self.drawn[i] = lod;
+            if sel < h.lod {
+                cx.out.loads.push(LoadRequest {
+                    tree: Tree::Elevation,
+                    block: id,
+                    record: self.cold[i].record,
+                    importance: refine_importance(h.lod, imp),
+                    forced: false,
+                });
+            } else if wants_split(imp) && h.splittable {
+                cx.trigger_split(Tree::Elevation, id, split_importance(imp), 0);
+            }
+            let m = &mut self.memo[i];
+            if m.sse_lod != lod {
+                let c = &self.cold[i];
+                let error = if lod == 1 { c.err1 } else { c.err0 };
+                let dist = block_distance(eye, h.centre, h.radius);
+                m.sse = sse.of(error, dist.max(view.near));
+                m.sse_lod = lod;
+            }
+            let w = if lod == 0 { et.width } else { et.width / 2 } as u64;
+            cx.out.triangles += 2 * w * w;
+            cx.out.draw.push(DrawBlock {
+                block: id,
+                lod,
+                neighbours: [None; 4],
+                colour: None,
+                importance: imp,
+                screen_error: m.sse,
+            });
+            self.draw_idx.push(i as u32);
+        }
+        // Colour tree.
+        self.cdrawn.clear();
+        self.cdrawn.resize(self.cnodes.len(), NOT_DRAWN);
+        if let Some(ct) = tree.colour() {
+            let cw = ct.width as f64;
+            for (j, c) in self.cnodes.iter().enumerate() {
+                let h = &self.hot[c.elev as usize];
+                let visible = self.state[c.elev as usize] != 0;
+                let m = &mut self.cmemo[j];
+                if m.0 != gen {
+                    *m = (
+                        gen,
+                        importance(block_distance(eye, h.centre, h.radius), h.radius, cw, qf),
+                    );
+                }
+                let imp = m.1;
+                if c.split {
+                    if wants_merge(imp) && tree.can_merge(Tree::Colour, &c.id).is_ok() {
+                        cx.out.ops.push(TreeOp {
+                            kind: OpKind::Merge,
+                            tree: Tree::Colour,
+                            block: c.id,
+                            importance: imp,
+                        });
+                    }
+                    continue;
+                }
+                let sel = selected_lod(imp);
+                self.cdrawn[j] = sel.max(c.lod);
+                if !visible {
+                    continue;
+                }
+                if sel < c.lod {
+                    cx.out.loads.push(LoadRequest {
+                        tree: Tree::Colour,
+                        block: c.id,
+                        record: c.record,
+                        importance: refine_importance(c.lod, imp),
+                        forced: false,
+                    });
+                } else if wants_split(imp)
+                    && c.splittable
+                    && tree.can_split(Tree::Colour, &c.id).is_ok()
+                {
+                    cx.out.ops.push(TreeOp {
+                        kind: OpKind::Split,
+                        tree: Tree::Colour,
+                        block: c.id,
+                        importance: split_importance(imp),
+                    });
+                }
+            }
+        }
+        // Neighbour LODs and colour bindings (split and hidden nodes have
+        // no drawn LOD).
+        for (d, &i) in cx.out.draw.iter_mut().zip(&self.draw_idx) {
+            let c = &self.cold[i as usize];
+            for (k, &j) in self.nb[i as usize].iter().enumerate() {
+                if j == NONE {
+                    continue;
+                }
+                let nlod = self.drawn[j as usize];
+                if nlod == NOT_DRAWN {
+                    continue;
+                }
+                let nid = self.ids[j as usize];
+                d.neighbours[k] = Some(NeighbourLod {
+                    block: nid,
+                    lod: nlod,
+                    lod_diff: (nlod as i32 - d.lod as i32)
+                        + (d.block.level as i32 - nid.level as i32),
+                });
+            }
+            d.colour = match c.colour {
+                Binding::None => None,
+                Binding::Node(j) => {
+                    let cn = &self.cnodes[j as usize];
+                    Some(ColourBinding {
+                        block: cn.id,
+                        lod: self.cdrawn[j as usize],
+                    })
+                }
+                Binding::Tree(id) => {
+                    tree.colour()
+                        .and_then(|t| t.get(&id))
+                        .map(|c| ColourBinding {
+                            block: c.id,
+                            lod: c.lod,
+                        })
+                }
+            };
+        }
+        self.last_draw = cx.out.draw.len();
+        cx.out
+    }
+}
+
+/// [`View::is_visible`] of a node: by its witness point when that
+/// still proves it visible, else by the full test (which finds a new
+/// witness when it can).
+fn exact_visible(view: &View, c: &Cold, hint: &mut u32, witness: &mut Option<DVec3>) -> bool {
+    // A witness is only kept for blocks without parts, whose ball `own` is
+    // then the bounds' own ball.
+    if let Some(p) = *witness {
+        if view.planet_in_view()
+            && view.sphere_in_cone(c.own.0, c.own.1)
+            && view.point_witnesses_visible(p)
+        {
+            return true;
+        }
+    }
+    let b = &*c.bounds;
+    let v = view.is_visible_hinted(b, hint);
+    *witness = None;
+    if v && b.parts.is_empty() {
+        if let Some(&p) = b.points.get(*hint as usize) {
+            if view.point_witnesses_visible(p) {
+                *witness = Some(p);
+            }
+        }
+    }
+    v
+}
+
+/// Largest error of the children's records (the error at LOD 0), 0 without.
+fn child_error(n: &Node) -> f64 {
+    n.child_refs.as_ref().map_or(0.0, |c| {
+        c.iter().map(|r| r.error as f64).fold(0.0, f64::max)
+    })
 }

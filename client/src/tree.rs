@@ -47,6 +47,7 @@ use planet_core::lod::{self, Rgb};
 use planet_core::{BlockId, Edge, Face};
 use std::collections::{HashMap, HashSet};
 use std::hash::{BuildHasherDefault, Hasher};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use thiserror::Error;
 
@@ -210,8 +211,8 @@ pub struct Node {
     /// The samples; `Some` exactly for leaves.
     pub samples: Option<Samples>,
     /// Conservative bounds (elevation nodes; colour nodes use the elevation
-    /// node with the same id).
-    pub bounds: Option<BlockBounds>,
+    /// node with the same id). Shared, so that caches can hold them.
+    pub bounds: Option<Arc<BlockBounds>>,
 }
 
 impl Node {
@@ -392,6 +393,57 @@ pub struct PartialTree {
     elevation: LinkedTree,
     colour: Option<LinkedTree>,
     max_diff: u8,
+    changes: Changes,
+}
+
+/// Identity of one tree value: a clone gets a new one, so a cache keyed by
+/// it can never mistake a diverged clone for the tree it was built from.
+#[derive(Debug)]
+struct Instance(u64);
+
+impl Instance {
+    fn new() -> Instance {
+        static NEXT: AtomicU64 = AtomicU64::new(1);
+        Instance(NEXT.fetch_add(1, Ordering::Relaxed))
+    }
+}
+
+impl Clone for Instance {
+    fn clone(&self) -> Instance {
+        Instance::new()
+    }
+}
+
+/// Change tracking for caches derived from the tree (the per-frame
+/// selection cache, [`crate::selection::Selector`]).
+#[derive(Debug, Clone)]
+struct Changes {
+    instance: Instance,
+    /// Bumped by every split and merge (and when `refined` overflows).
+    structure: u64,
+    /// Blocks refined (LOD 0 applied) since the last structural change.
+    refined: Vec<(Tree, BlockId)>,
+}
+
+/// Refines logged before the log is dropped for a structural change.
+const MAX_REFINE_LOG: usize = 4096;
+
+/// A stamp of the tree's state for caches: see [`PartialTree::changes_since`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct TreeStamp {
+    instance: u64,
+    structure: u64,
+    refined: usize,
+}
+
+/// What changed in a tree since a [`TreeStamp`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TreeChanges<'a> {
+    /// Another tree, or nodes were added or removed (split, merge): rebuild.
+    Structure,
+    /// Only these blocks were refined (their LOD, children's records and so
+    /// split readiness changed); empty when nothing changed.
+    Refined(&'a [(Tree, BlockId)]),
 }
 
 /// A header the client cannot start from.
@@ -432,7 +484,7 @@ impl PartialTree {
                     split: false,
                     lod: 1,
                     samples: Some(Samples::Elevation(grid)),
-                    bounds: Some(bounds_of(&header, id, &record)),
+                    bounds: Some(Arc::new(bounds_of(&header, id, &record))),
                 },
             );
         }
@@ -481,7 +533,47 @@ impl PartialTree {
             elevation,
             colour,
             max_diff,
+            changes: Changes {
+                instance: Instance::new(),
+                structure: 0,
+                refined: Vec::new(),
+            },
         })
+    }
+
+    /// The current state, for a cache to compare with later
+    /// ([`PartialTree::changes_since`]).
+    pub fn stamp(&self) -> TreeStamp {
+        TreeStamp {
+            instance: self.changes.instance.0,
+            structure: self.changes.structure,
+            refined: self.changes.refined.len(),
+        }
+    }
+
+    /// What changed since `stamp` was taken (of this very tree value).
+    pub fn changes_since(&self, stamp: &TreeStamp) -> TreeChanges<'_> {
+        let c = &self.changes;
+        if stamp.instance != c.instance.0
+            || stamp.structure != c.structure
+            || stamp.refined > c.refined.len()
+        {
+            return TreeChanges::Structure;
+        }
+        TreeChanges::Refined(&c.refined[stamp.refined..])
+    }
+
+    fn structure_changed(&mut self) {
+        self.changes.structure += 1;
+        self.changes.refined.clear();
+    }
+
+    fn refined(&mut self, kind: Tree, id: BlockId) {
+        if self.changes.refined.len() >= MAX_REFINE_LOG {
+            self.structure_changed();
+        } else {
+            self.changes.refined.push((kind, id));
+        }
     }
 
     /// The database header.
@@ -566,6 +658,7 @@ impl PartialTree {
         n.samples = Some(d.samples);
         n.child_refs = Some(d.children);
         n.lod = 0;
+        self.refined(d.tree, d.block);
         true
     }
 
@@ -631,6 +724,8 @@ impl PartialTree {
     /// Split `id` (after checking every constraint).
     pub fn split(&mut self, kind: Tree, id: &BlockId) -> Result<(), Blocked> {
         self.can_split(kind, id)?;
+        // Conservative: any attempt past the checks counts as a change.
+        self.structure_changed();
         let header = self.header.clone();
         let t = self.tree_mut(kind).ok_or(Blocked::Missing)?;
         let w = t.width;
@@ -662,7 +757,7 @@ impl PartialTree {
         n.split = true;
         for (k, (s, r)) in children.into_iter().enumerate() {
             let cid = id.child(k);
-            let bounds = (kind == Tree::Elevation).then(|| bounds_of(&header, cid, &r));
+            let bounds = (kind == Tree::Elevation).then(|| Arc::new(bounds_of(&header, cid, &r)));
             t.nodes.insert(
                 cid,
                 Node {
@@ -682,6 +777,7 @@ impl PartialTree {
     /// Merge `id`'s children back into it (after checking every constraint).
     pub fn merge(&mut self, kind: Tree, id: &BlockId) -> Result<(), Blocked> {
         self.can_merge(kind, id)?;
+        self.structure_changed();
         let t = self.tree_mut(kind).ok_or(Blocked::Missing)?;
         let w = t.width;
         let mut kids = Vec::with_capacity(4);

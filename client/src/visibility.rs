@@ -409,7 +409,85 @@ impl View {
 
     /// Whether every bounding point of the block is behind the horizon.
     pub fn behind_horizon(&self, b: &BlockBounds) -> bool {
-        !b.points.is_empty() && b.points.iter().all(|p| self.point_behind_horizon(*p))
+        if b.points.is_empty() {
+            return false;
+        }
+        // Sphere pre-tests (every point lies in the sphere): same answer.
+        match self.sphere_horizon(b.centre, b.sphere_radius) {
+            Some(hidden) => hidden,
+            None => b.points.iter().all(|p| self.point_behind_horizon(*p)),
+        }
+    }
+
+    /// The horizon test (§4.5.4) for every point of the ball (`centre`,
+    /// `radius`) at once: `Some(true)` when all of them are in the convex
+    /// part of the min sphere's shadow, `Some(false)` when none is beyond
+    /// the plane of the tangent circle (so none is hidden), `None` when the
+    /// ball straddles. Margins of 1 mm keep it on the safe side of rounding,
+    /// so it agrees with [`View::point_behind_horizon`] on every point.
+    pub fn sphere_horizon(&self, centre: DVec3, radius: f64) -> Option<bool> {
+        if self.eye_len.partial_cmp(&self.r_min) != Some(std::cmp::Ordering::Greater) {
+            return Some(false);
+        }
+        if !(centre.is_finite() && radius.is_finite() && radius >= 0.0) {
+            return None;
+        }
+        let v = self.camera.eye;
+        let vhat = v / self.eye_len;
+        let plane = self.r_min * (self.r_min / self.eye_len);
+        let tol = 1e-3 + 1e-12 * self.eye_len;
+        let c = centre.dot(vhat);
+        if c - radius >= plane + tol {
+            return Some(false);
+        }
+        if c + radius < plane * (1.0 - 1e-12) - tol {
+            // Inside the shadow cone: angle to −V̂ plus the ball's angular
+            // radius below β (cos form; a sum above π/2 fails the test).
+            let d = centre - v;
+            let dist = d.length();
+            if dist > radius * (1.0 + 1e-9) + tol {
+                let cos_phi = (d.dot(-vhat) / dist).clamp(-1.0, 1.0);
+                let sin_phi = (1.0 - cos_phi * cos_phi).max(0.0).sqrt();
+                let ss = radius / dist + 1e-12;
+                let cs = (1.0 - ss * ss).max(0.0).sqrt();
+                let cos_sum = cos_phi * cs - sin_phi * ss;
+                if cos_phi > 0.0 && cos_sum > self.cos_beta * (1.0 + 1e-12) + 1e-9 {
+                    return Some(true);
+                }
+            }
+        }
+        None
+    }
+
+    /// Visibility of every block whose bounding points (and parts' points)
+    /// all lie in the ball (`centre`, `radius`), decided without the points
+    /// (§3.6.1, §4.2.1, §4.5.4): `Some(true)` when the ball is inside the
+    /// frustum and in front of the horizon (so [`View::is_visible`] is true
+    /// for each such block), `Some(false)` when it is outside one plane or
+    /// behind the horizon, `None` when undecided. Used to skip the tests of
+    /// whole subtrees ([`crate::selection::Selector`]).
+    pub fn classify_sphere(&self, centre: DVec3, radius: f64) -> Option<bool> {
+        if !self.planet_in_view {
+            return Some(false);
+        }
+        if !(centre.is_finite() && radius.is_finite() && radius >= 0.0) {
+            return None;
+        }
+        let c = centre - self.camera.eye;
+        let mut inside = true;
+        for (p, len) in self.planes.iter().zip(self.plane_norms) {
+            let s = p.n.dot(c) + p.d;
+            let m = radius * len * (1.0 + 1e-9) + (1e-6 + 1e-3) * (1.0 + len);
+            if s <= -m {
+                return Some(false);
+            }
+            inside &= s >= m;
+        }
+        match self.sphere_horizon(centre, radius) {
+            Some(true) => Some(false),
+            Some(false) if inside => Some(true),
+            _ => None,
+        }
     }
 
     /// Whether the block may be visible (frustum with horizon-fitted planes,
@@ -425,6 +503,60 @@ impl View {
             && self.box_in_frustum(b.min, b.max)
             && self.hull_in_frustum_sphere(&b.points, b.centre, b.sphere_radius)
             && !self.behind_horizon(b)
+    }
+
+    /// [`View::is_visible`] (the same answer) that tries the bounding point
+    /// `*hint` first in the horizon test and leaves there the point that
+    /// proved the block visible: from frame to frame it usually does again.
+    pub fn is_visible_hinted(&self, b: &BlockBounds, hint: &mut u32) -> bool {
+        if !b.parts.is_empty() {
+            return self.is_visible(b);
+        }
+        self.planet_in_view
+            && self.sphere_in_cone(b.centre, b.sphere_radius)
+            && self.box_in_frustum(b.min, b.max)
+            && self.hull_in_frustum_sphere(&b.points, b.centre, b.sphere_radius)
+            && !self.behind_horizon_hinted(b, hint)
+    }
+
+    /// Whether the planet is in view at all (else nothing is visible).
+    pub fn planet_in_view(&self) -> bool {
+        self.planet_in_view
+    }
+
+    /// Whether the bounding point `p` of a block proves the block visible:
+    /// `p` is inside every frustum plane (each plane test of
+    /// [`View::hull_in_frustum`] and, since the box holds `p`, of
+    /// [`View::box_in_frustum`] passes; the same expressions) and not
+    /// behind the horizon. With [`View::planet_in_view`] and
+    /// [`View::sphere_in_cone`] of the block's ball this gives
+    /// [`View::is_visible`] of a block without parts.
+    pub fn point_witnesses_visible(&self, p: DVec3) -> bool {
+        let q = p - self.camera.eye;
+        self.planes.iter().all(|pl| pl.n.dot(q) + pl.d >= 0.0) && !self.point_behind_horizon(p)
+    }
+
+    fn behind_horizon_hinted(&self, b: &BlockBounds, hint: &mut u32) -> bool {
+        let n = b.points.len();
+        if n == 0 {
+            return false;
+        }
+        if let Some(hidden) = self.sphere_horizon(b.centre, b.sphere_radius) {
+            return hidden;
+        }
+        let start = *hint as usize % n;
+        for k in 0..n {
+            let i = if start + k < n {
+                start + k
+            } else {
+                start + k - n
+            };
+            if !self.point_behind_horizon(b.points[i]) {
+                *hint = i as u32;
+                return false;
+            }
+        }
+        true
     }
 
     /// Whether the sphere may meet the frustum's bounding cone (apex at the
