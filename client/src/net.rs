@@ -212,6 +212,16 @@ impl std::fmt::Debug for Connection {
     }
 }
 
+/// `fut` bounded by `opts.connect_timeout` ([`NetError::Timeout`] past it).
+async fn within_connect_timeout<T>(
+    opts: &ConnectOptions,
+    fut: impl std::future::Future<Output = Result<T, NetError>>,
+) -> Result<T, NetError> {
+    tokio::time::timeout(opts.connect_timeout, fut)
+        .await
+        .unwrap_or(Err(NetError::Timeout))
+}
+
 impl Connection {
     /// Connects with default [`ConnectOptions`].
     pub async fn connect(
@@ -234,10 +244,7 @@ impl Connection {
         opts: &ConnectOptions,
     ) -> Result<(Connection, Welcome), NetError> {
         let fut = Self::connect_own_endpoint(addr, server_name, tls, hello, opts);
-        match tokio::time::timeout(opts.connect_timeout, fut).await {
-            Ok(r) => r,
-            Err(_) => Err(NetError::Timeout),
-        }
+        within_connect_timeout(opts, fut).await
     }
 
     /// Like [`Connection::connect_with`], but on an existing client
@@ -254,10 +261,7 @@ impl Connection {
         opts: &ConnectOptions,
     ) -> Result<(Connection, Welcome), NetError> {
         let fut = Self::connect_inner(endpoint.clone(), addr, server_name, tls, hello, opts);
-        match tokio::time::timeout(opts.connect_timeout, fut).await {
-            Ok(r) => r,
-            Err(_) => Err(NetError::Timeout),
-        }
+        within_connect_timeout(opts, fut).await
     }
 
     async fn connect_own_endpoint(
