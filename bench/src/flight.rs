@@ -4,6 +4,7 @@ use crate::plot;
 use crate::thread_cpu;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use planet_client::net::{Connection, SessionConfig};
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::request_queue::QueueConfig;
 use planet_client::streaming::StreamingClient;
@@ -16,6 +17,7 @@ use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 #[derive(Args, Debug, Clone)]
@@ -57,6 +59,13 @@ pub struct FlightArgs {
     /// (client/src/view_prediction.rs), for A/B comparisons.
     #[arg(long)]
     pub no_predict: bool,
+    /// A returning client: connect once through the same link first (same
+    /// TLS configuration and options), keep the session ticket and the
+    /// address-validation token, close; the measured connection then
+    /// resumes and sends its Hello as 0-RTT early data. The warm-up's link
+    /// bytes are not counted.
+    #[arg(long)]
+    pub warm: bool,
     /// Stop after this many seconds of the trajectory.
     #[arg(long)]
     pub duration: Option<f64>,
@@ -103,6 +112,9 @@ pub struct Row {
 pub struct Summary {
     pub label: String,
     pub first_frame_ms: f64,
+    /// The measured connection resumed a session and its Hello went as
+    /// 0-RTT early data (`--warm`).
+    pub zero_rtt: bool,
     pub connect_ms: f64,
     pub sse_start_s: Option<f64>,
     pub sse_stop_s: Option<f64>,
@@ -244,12 +256,22 @@ fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
             .collect();
     drop(cache);
     let session = server.session_config(link.local_addr())?;
+    let warm_up_bytes = if a.warm {
+        rt.block_on(warm_up(&session))?;
+        link.stats().bytes_down
+    } else {
+        0
+    };
     let t_connect = Instant::now();
     let mut sc =
         StreamingClient::connect(rt.handle(), session, client_cfg, Duration::from_secs(20))?;
     let connect_ms = t_connect.elapsed().as_secs_f64() * 1e3;
 
-    eprintln!("{} probes; connected in {connect_ms:.1} ms", probes.len());
+    let zero_rtt = sc.session().used_zero_rtt();
+    eprintln!(
+        "{} probes; connected in {connect_ms:.1} ms (0-RTT: {zero_rtt})",
+        probes.len()
+    );
 
     let mut rows: Vec<Row> = Vec::new();
     let mut first_frame_ms = f64::NAN;
@@ -375,7 +397,8 @@ fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
             .filter(|_| moved.len() > 1)
             .and_then(|s| time_to_sse(&rows, s.0, s.1.min(duration))),
         bytes: counters.bytes_received,
-        link_bytes_down: link_stats.bytes_down,
+        link_bytes_down: link_stats.bytes_down - warm_up_bytes,
+        zero_rtt,
         relevant_pct: 100.0 * totals.relevant_ratio(),
         forced_pct: 100.0 * totals.forced_ratio(),
         after_cancel_pct: 100.0 * counters.bytes_after_cancel as f64 / b,
@@ -390,6 +413,26 @@ fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
         frames_late,
         frames,
     })
+}
+
+/// One connection through the link that is closed again once the server's
+/// session tickets and address-validation tokens (sent after the handshake)
+/// have had time to arrive: what a returning client has kept.
+async fn warm_up(session: &SessionConfig) -> Result<()> {
+    let (conn, _) = Connection::connect_with(
+        session.addr,
+        &session.server_name,
+        Arc::clone(&session.tls),
+        session.hello.clone(),
+        &session.options,
+    )
+    .await
+    .context("warm-up connection")?;
+    // Tickets and tokens follow the handshake by about one round trip;
+    // one second covers every link of the benchmark, losses included.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    conn.close();
+    Ok(())
 }
 
 fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
@@ -443,8 +486,9 @@ pub fn summary_table(ss: &[Summary]) -> String {
     for s in ss {
         let _ = writeln!(
             t,
-            "| {} | {:.0} ms ({:.0} ms) | {} | {} | {} | {:.2} MB | {:.2} MB | {:.2} % ({:.2} %) | {:.2} % | {:.2} % | {} / {} | {:.3} / {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {}{} | {:.0} ms ({:.0} ms) | {} | {} | {} | {:.2} MB | {:.2} MB | {:.2} % ({:.2} %) | {:.2} % | {:.2} % | {} / {} | {:.3} / {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.label,
+            if s.zero_rtt { " (0-RTT)" } else { "" },
             s.first_frame_ms,
             s.connect_ms,
             fmt_s(s.sse_start_s),

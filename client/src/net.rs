@@ -140,6 +140,18 @@ pub struct ConnectOptions {
     pub fetch_timeout: Option<Duration>,
     /// QUIC transport parameters; `None` = [`default_transport`].
     pub transport: Option<Arc<quinn::TransportConfig>>,
+    /// Send the `Hello` as 0-RTT early data when resuming a TLS session
+    /// with this server (the session tickets live in the rustls
+    /// `ClientConfig`): the `Welcome` then arrives one round trip after the
+    /// first packet. If the server refuses the early data the `Hello` is
+    /// sent again after the handshake.
+    pub zero_rtt: bool,
+    /// QUIC address-validation tokens (NEW_TOKEN) received from servers,
+    /// shared by every connection made with these options (clones share
+    /// it). A token lifts the server's anti-amplification limit on a later
+    /// connection, so a 0.5-RTT `Welcome` larger than three times the
+    /// client's first flight is not held back a round trip.
+    pub tokens: Arc<dyn quinn::TokenStore>,
 }
 
 impl Default for ConnectOptions {
@@ -148,6 +160,8 @@ impl Default for ConnectOptions {
             connect_timeout: Duration::from_secs(5),
             fetch_timeout: Some(Duration::from_secs(30)),
             transport: None,
+            zero_rtt: true,
+            tokens: Arc::new(quinn::TokenMemoryCache::default()),
         }
     }
 }
@@ -158,7 +172,8 @@ impl std::fmt::Debug for ConnectOptions {
             .field("connect_timeout", &self.connect_timeout)
             .field("fetch_timeout", &self.fetch_timeout)
             .field("custom_transport", &self.transport.is_some())
-            .finish()
+            .field("zero_rtt", &self.zero_rtt)
+            .finish_non_exhaustive()
     }
 }
 
@@ -185,6 +200,8 @@ struct Inner {
     ctrl_task: JoinHandle<()>,
     welcome: Welcome,
     fetch_timeout: Option<Duration>,
+    zero_rtt: bool,
+    zero_rtt_refused: bool,
 }
 
 impl Drop for Inner {
@@ -287,28 +304,37 @@ impl Connection {
             .map_err(|e| NetError::Connect(e.to_string()))?;
         let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
         cfg.transport_config(opts.transport.clone().unwrap_or_else(default_transport));
-        let conn = endpoint
+        cfg.token_store(Arc::clone(&opts.tokens));
+        let connecting = endpoint
             .connect_with(cfg, addr, server_name)
-            .map_err(|e| NetError::Connect(e.to_string()))?
-            .await?;
-        let (mut send, mut recv) = conn.open_bi().await?;
-        let (mut hs, bytes) = ClientHandshake::new(hello)?;
-        send.write_all(&bytes).await?;
-        let welcome = loop {
-            match recv.read_chunk(64 * 1024, true).await {
-                Ok(Some(chunk)) => match hs.receive(&chunk.bytes)? {
-                    Some(HandshakeOutcome::Welcomed(w)) => break w,
-                    Some(HandshakeOutcome::Rejected(e)) => return Err(NetError::Rejected(e)),
-                    None => {}
-                },
-                Ok(None) => {
-                    hs.finish()?;
-                    return Err(NetError::Protocol(ProtocolError::UnexpectedEnd {
-                        during: "before Welcome",
-                    }));
-                }
-                Err(e) => return Err(e.into()),
+            .map_err(|e| NetError::Connect(e.to_string()))?;
+        let (conn, early) = if opts.zero_rtt {
+            match connecting.into_0rtt() {
+                Ok((conn, accepted)) => (conn, Some(accepted)),
+                Err(connecting) => (connecting.await?, None),
             }
+        } else {
+            (connecting.await?, None)
+        };
+        let tried_early = early.is_some();
+        let first = hello_exchange(&conn, &hello).await;
+        // Resolves when the handshake completes: a Welcome sent in 0.5-RTT
+        // data comes behind the server's Finished, so after it this is
+        // immediate.
+        let zero_rtt = match early {
+            Some(accepted) => accepted.await,
+            None => false,
+        };
+        let refused = tried_early && !zero_rtt;
+        let (send, recv, hs, welcome) = match first {
+            Ok(x) => x,
+            Err(e) if refused && conn.close_reason().is_none() => {
+                // The server refused the early data (unknown or used
+                // ticket, 0-RTT disabled): the Hello never reached it.
+                tracing::debug!(error = %e, "0-RTT refused, sending Hello again");
+                hello_exchange(&conn, &hello).await?
+            }
+            Err(e) => return Err(e),
         };
         let (goodbye_tx, goodbye) = watch::channel(None);
         let ctrl_task = tokio::spawn(read_control(recv, hs.into_decoder(), goodbye_tx));
@@ -320,6 +346,8 @@ impl Connection {
             ctrl_task,
             welcome: welcome.clone(),
             fetch_timeout: opts.fetch_timeout,
+            zero_rtt,
+            zero_rtt_refused: refused,
         };
         Ok((
             Connection {
@@ -332,6 +360,19 @@ impl Connection {
     /// The server's welcome (header, file size, limits).
     pub fn welcome(&self) -> &Welcome {
         &self.inner.welcome
+    }
+
+    /// True if the `Hello` went out as 0-RTT early data and the server
+    /// accepted it (a resumed session).
+    pub fn used_zero_rtt(&self) -> bool {
+        self.inner.zero_rtt
+    }
+
+    /// True if the `Hello` went out as 0-RTT early data, the server refused
+    /// it (e.g. a restarted server that does not know the ticket) and the
+    /// `Hello` was sent again after the handshake.
+    pub fn zero_rtt_refused(&self) -> bool {
+        self.inner.zero_rtt_refused
     }
 
     /// The server's address.
@@ -433,6 +474,42 @@ impl Drop for StreamGuard {
             if !self.finished {
                 let _ = self.send.reset(VarInt::from_u32(quic::STREAM_CANCELLED));
             }
+        }
+    }
+}
+
+/// Opens the control stream, sends `hello` and reads up to the `Welcome`
+/// (thesis §3.3; docs/PROTOCOL.md). Returns the streams and the decoder
+/// state that the control-stream reader continues from.
+async fn hello_exchange(
+    conn: &quinn::Connection,
+    hello: &Hello,
+) -> Result<
+    (
+        quinn::SendStream,
+        quinn::RecvStream,
+        ClientHandshake,
+        Welcome,
+    ),
+    NetError,
+> {
+    let (mut send, mut recv) = conn.open_bi().await?;
+    let (mut hs, bytes) = ClientHandshake::new(hello.clone())?;
+    send.write_all(&bytes).await?;
+    loop {
+        match recv.read_chunk(64 * 1024, true).await {
+            Ok(Some(chunk)) => match hs.receive(&chunk.bytes)? {
+                Some(HandshakeOutcome::Welcomed(w)) => return Ok((send, recv, hs, w)),
+                Some(HandshakeOutcome::Rejected(e)) => return Err(NetError::Rejected(e)),
+                None => {}
+            },
+            Ok(None) => {
+                hs.finish()?;
+                return Err(NetError::Protocol(ProtocolError::UnexpectedEnd {
+                    during: "before Welcome",
+                }));
+            }
+            Err(e) => return Err(e.into()),
         }
     }
 }
@@ -577,6 +654,8 @@ enum Cmd {
 #[derive(Default)]
 struct Status {
     connected: bool,
+    zero_rtt: bool,
+    zero_rtt_refused: bool,
     welcome: Option<Welcome>,
     last_error: Option<NetError>,
 }
@@ -641,6 +720,21 @@ impl SessionHandle {
     /// True while connected.
     pub fn is_connected(&self) -> bool {
         self.status.lock().map(|s| s.connected).unwrap_or(false)
+    }
+
+    /// True if the current (or last) connection sent its `Hello` as
+    /// accepted 0-RTT early data (a resumed session).
+    pub fn used_zero_rtt(&self) -> bool {
+        self.status.lock().map(|s| s.zero_rtt).unwrap_or(false)
+    }
+
+    /// True if the current (or last) connection's 0-RTT `Hello` was refused
+    /// and sent again after the handshake.
+    pub fn zero_rtt_refused(&self) -> bool {
+        self.status
+            .lock()
+            .map(|s| s.zero_rtt_refused)
+            .unwrap_or(false)
     }
 
     /// The latest welcome.
@@ -712,6 +806,8 @@ async fn run_session(
                 backoff = cfg.backoff_initial;
                 set_status(&status, |s| {
                     s.connected = true;
+                    s.zero_rtt = conn.used_zero_rtt();
+                    s.zero_rtt_refused = conn.zero_rtt_refused();
                     s.welcome = Some(welcome.clone());
                 });
                 let _ = ev.send(NetEvent::Connected(welcome));

@@ -153,8 +153,11 @@ pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, T
         }
     };
     cfg.alpn_protocols = vec![planet_protocol::ALPN.to_vec()];
-    // 0-RTT is disabled on the server; do not attempt it.
-    cfg.enable_early_data = false;
+    // 0-RTT: a resumed session may carry the Hello as early data
+    // (`ConnectOptions::zero_rtt`); the session tickets are kept in this
+    // configuration's in-memory resumption store, shared by every
+    // connection made with it.
+    cfg.enable_early_data = true;
     Ok(Arc::new(cfg))
 }
 

@@ -200,7 +200,7 @@ impl Server {
         };
         let fingerprint = tls::sha256_hex(ck.leaf_der());
         let cert_der = ck.leaf_der().to_vec();
-        let rustls_cfg = tls::rustls_server_config(&ck)?;
+        let rustls_cfg = tls::rustls_server_config(&ck, config.zero_rtt)?;
         let quic_crypto = quinn::crypto::rustls::QuicServerConfig::try_from(rustls_cfg)
             .map_err(|e| tls::TlsError::Config(e.to_string()))?;
         let mut server_cfg = quinn::ServerConfig::with_crypto(Arc::new(quic_crypto));
@@ -320,6 +320,7 @@ fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, Server
     let mut cc = quinn::congestion::CubicConfig::default();
     cc.initial_window(cfg.initial_window);
     t.congestion_controller_factory(Arc::new(cc));
+    t.initial_rtt(Duration::from_millis(u64::from(cfg.initial_rtt_ms)));
     Ok(t)
 }
 
@@ -343,12 +344,10 @@ async fn accept_loop(
             let over = shared.active.fetch_add(1, Ordering::AcqRel) >= shared.cfg.max_connections;
             shared.metrics.connections_active.inc();
             let guard = ActiveGuard(Arc::clone(&shared));
-            let conn = match incoming.await {
-                Ok(c) => c,
-                Err(e) => {
-                    tracing::debug!(%peer, error = %e, "handshake failed");
-                    return;
-                }
+            // A refused connection completes its handshake first: a close
+            // sent during the handshake cannot carry the application code.
+            let Some(conn) = handshake(incoming, shared.cfg.zero_rtt && !over).await else {
+                return;
             };
             if over {
                 shared
@@ -378,6 +377,38 @@ async fn accept_loop(
     if drained.is_err() {
         tracing::warn!("connections still open after the grace period: closing them");
         conns.shutdown().await;
+    }
+}
+
+/// Runs the server side of the handshake. With 0-RTT the connection is
+/// handed over at once (0.5-RTT): a resuming client's `Hello` sent as early
+/// data is read and answered before the client's handshake `Finished`
+/// arrives, and a client without early data is served as soon as its
+/// streams arrive after the handshake. Without 0-RTT it waits for the
+/// handshake to complete.
+async fn handshake(incoming: quinn::Incoming, zero_rtt: bool) -> Option<quinn::Connection> {
+    let peer = incoming.remote_address();
+    let connecting = match incoming.accept() {
+        Ok(c) => c,
+        Err(e) => {
+            tracing::debug!(%peer, error = %e, "connection refused");
+            return None;
+        }
+    };
+    let connecting = if zero_rtt {
+        match connecting.into_0rtt() {
+            Ok((conn, _always_accepted_on_a_server)) => return Some(conn),
+            Err(connecting) => connecting,
+        }
+    } else {
+        connecting
+    };
+    match connecting.await {
+        Ok(c) => Some(c),
+        Err(e) => {
+            tracing::debug!(%peer, error = %e, "handshake failed");
+            None
+        }
     }
 }
 

@@ -85,6 +85,10 @@ struct RunArgs {
     /// config; default 65536, QUIC's own default is about 14 720).
     #[arg(long)]
     initial_window: Option<u64>,
+    /// Refuse 0-RTT data (resuming clients then wait one more round trip
+    /// for their Welcome). Overrides `zero_rtt` in the config.
+    #[arg(long)]
+    no_zero_rtt: bool,
     /// Tokio worker threads (default: one per CPU). 1 runs everything on
     /// a single-threaded runtime: no cross-thread wake-ups, one core at most.
     #[arg(long)]
@@ -163,6 +167,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if let Some(w) = args.initial_window {
         cfg.initial_window = w;
+    }
+    if args.no_zero_rtt {
+        cfg.zero_rtt = false;
     }
     if let (Some(c), Some(k)) = (&args.cert, &args.key) {
         cfg.tls = TlsSource::Pem {

@@ -2,11 +2,15 @@
 //! development certificate, rustls with the ring provider only, ALPN
 //! `planet/1`, TLS 1.3 only (QUIC requires it).
 //!
-//! **0-RTT is disabled** (`max_early_data_size = 0`): requests are idempotent
-//! reads, but a replayed 0-RTT `Hello` would let an on-path attacker re-run
-//! authentication and consume a tenant's connection and bandwidth budget,
-//! while the saving (one round trip per connection, not per request) is
-//! negligible for long-lived streaming sessions.
+//! **0-RTT** (`zero_rtt`, on by default): a client resuming a TLS session
+//! may send its `Hello` in 0-RTT and get the `Welcome` in 0.5-RTT, one round
+//! trip after its first packet instead of two. Replays are refused: session
+//! tickets are stateful (no ticketer) and rustls takes them out of the
+//! session cache on use (`StoresServerSessions::take`), so a captured 0-RTT
+//! flight replayed to this server finds its ticket gone and falls back to a
+//! full handshake the attacker cannot complete. Requests are idempotent reads
+//! in any case. With `zero_rtt = false` early data is refused
+//! (`max_early_data_size = 0`).
 
 use std::path::Path;
 use std::sync::Arc;
@@ -99,8 +103,17 @@ pub fn install_crypto_provider() {
     let _ = rustls::crypto::ring::default_provider().install_default();
 }
 
-/// The rustls server configuration: ring, TLS 1.3, ALPN `planet/1`, no 0-RTT.
-pub fn rustls_server_config(ck: &CertKey) -> Result<rustls::ServerConfig, TlsError> {
+/// Resumable sessions kept per server (two tickets per connection; about
+/// 300 bytes each). Older ones are evicted: their clients do a full
+/// handshake.
+pub const SESSION_CACHE_SIZE: usize = 8192;
+
+/// The rustls server configuration: ring, TLS 1.3, ALPN `planet/1`, stateful
+/// single-use session tickets, early data (0-RTT) if `zero_rtt`.
+pub fn rustls_server_config(
+    ck: &CertKey,
+    zero_rtt: bool,
+) -> Result<rustls::ServerConfig, TlsError> {
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
         .with_protocol_versions(&[&rustls::version::TLS13])
@@ -109,6 +122,8 @@ pub fn rustls_server_config(ck: &CertKey) -> Result<rustls::ServerConfig, TlsErr
         .with_single_cert(ck.chain.clone(), ck.key.clone_key())
         .map_err(|e| TlsError::Config(e.to_string()))?;
     cfg.alpn_protocols = vec![planet_protocol::ALPN.to_vec()];
-    cfg.max_early_data_size = 0;
+    cfg.session_storage = rustls::server::ServerSessionMemoryCache::new(SESSION_CACHE_SIZE);
+    // QUIC allows only 0 or u32::MAX (RFC 9001 §4.6.1).
+    cfg.max_early_data_size = if zero_rtt { u32::MAX } else { 0 };
     Ok(cfg)
 }

@@ -593,7 +593,7 @@ fn wrong_tokens_in_a_row_and_other_tenants_database() {
 }
 
 #[test]
-fn replayed_token_is_accepted_by_design_and_0rtt_is_refused() {
+fn replayed_token_is_accepted_by_design_and_0rtt_cannot_be_replayed() {
     let _g = serial();
     runtime().block_on(async {
         let fx = fixture(|_| {}).await;
@@ -614,79 +614,305 @@ fn replayed_token_is_accepted_by_design_and_0rtt_is_refused() {
             c.close();
         }
 
-        // 0-RTT: a client with early data enabled and a session ticket from
-        // a first connection cannot send 0-RTT to our server.
-        let mut tls = (*tls_for(&fx.h)).clone();
-        tls.enable_early_data = true;
-        let tls = Arc::new(tls);
-        let early = try_0rtt(fx.h.local_addr(), Arc::clone(&tls)).await;
-        assert!(!early, "0-RTT was accepted by planet-server");
-
-        // Control: the same client against a server that allows early data
-        // does get 0-RTT, so the check above is not vacuous.
-        let ck = planet_server::tls::CertKey::dev_cert().unwrap();
-        let mut scfg = planet_server::tls::rustls_server_config(&ck).unwrap();
-        scfg.max_early_data_size = u32::MAX;
-        let qcfg = quinn::crypto::rustls::QuicServerConfig::try_from(scfg).unwrap();
-        let sep = quinn::Endpoint::server(
-            quinn::ServerConfig::with_crypto(Arc::new(qcfg)),
-            "127.0.0.1:0".parse().unwrap(),
+        // 0-RTT: a client resuming its session (one rustls config, so one
+        // ticket store) sends its Hello as early data and the server takes it.
+        let tls = tls_for(&fx.h);
+        let opts = ConnectOptions::default();
+        let relay = Replayer::start(fx.h.local_addr()).await;
+        let (c1, _) = Connection::connect_with(
+            fx.h.local_addr(),
+            "localhost",
+            Arc::clone(&tls),
+            acme(),
+            &opts,
         )
+        .await
         .unwrap();
-        let saddr = sep.local_addr().unwrap();
-        let acceptor = tokio::spawn({
-            let sep = sep.clone();
-            async move {
-                while let Some(inc) = sep.accept().await {
-                    tokio::spawn(async move {
-                        if let Ok(c) = inc.accept() {
-                            if let Ok((conn, _)) = c.into_0rtt() {
-                                let _ = conn.closed().await;
-                            }
-                        }
-                    });
-                }
-            }
-        });
-        let fp = planet_server::tls::sha256_hex(ck.leaf_der());
-        let mut ctl = (*planet_client::tls::pinned(&fp).unwrap()).clone();
-        ctl.enable_early_data = true;
-        assert!(
-            try_0rtt(saddr, Arc::new(ctl)).await,
-            "control server with early data did not get 0-RTT"
+        assert!(!c1.used_zero_rtt(), "a first connection cannot resume");
+        assert_eq!(c1.fetch(1, off, size).await.unwrap().len(), size as usize);
+        // Session tickets arrive after the handshake.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        c1.close();
+        let hellos = handshakes_ok(&fx.h).await;
+        let (c2, _) =
+            Connection::connect_with(relay.addr, "localhost", Arc::clone(&tls), acme(), &opts)
+                .await
+                .unwrap();
+        assert!(c2.used_zero_rtt(), "the resumed session did not use 0-RTT");
+        assert_eq!(c2.fetch(2, off, size).await.unwrap().len(), size as usize);
+        c2.close();
+        assert_eq!(handshakes_ok(&fx.h).await, hellos + 1.0);
+        // A wrong token in 0-RTT is refused with its code like any other.
+        let bad = Hello::new("acme", "s3creT", "earth");
+        match Connection::connect_with(relay.addr, "localhost", Arc::clone(&tls), bad, &opts).await
+        {
+            Err(NetError::Rejected(e)) => assert_eq!(e.code, ErrorCode::Unauthorized),
+            other => panic!("expected unauthorized, got {:?}", other.err()),
+        }
+
+        // Replay: an on-path attacker resends the client's captured first
+        // flight (the ClientHello with the ticket and the 0-RTT Hello) from
+        // another port. The ticket was single-use, so the early data is
+        // refused and the Hello never reaches a session.
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let _attacker = relay.replay(fx.h.local_addr()).await;
+        tokio::time::sleep(Duration::from_millis(700)).await;
+        assert_eq!(
+            handshakes_ok(&fx.h).await,
+            hellos + 1.0,
+            "a replayed 0-RTT Hello was accepted"
         );
-        sep.close(0u32.into(), b"");
-        acceptor.abort();
+
+        // Control: the same replay against a server whose tickets can be
+        // redeemed twice does deliver the early data a second time, so the
+        // check above is not vacuous.
+        assert_eq!(replay_against_reusable_tickets().await, 2);
+
+        // With `zero_rtt = false` the resumed client's early data is refused
+        // and it sends its Hello again after the handshake.
+        let dir = tempfile::tempdir().unwrap();
+        let (mut cfg, recs) = two_tenant_config(dir.path());
+        cfg.zero_rtt = false;
+        let (off, size) = recs[1];
+        let strict = Server::start(cfg).await.unwrap();
+        let tls = tls_for(&strict);
+        let opts = ConnectOptions::default();
+        for round in 0..2 {
+            let (c, _) = Connection::connect_with(
+                strict.local_addr(),
+                "localhost",
+                Arc::clone(&tls),
+                acme(),
+                &opts,
+            )
+            .await
+            .unwrap();
+            assert!(!c.used_zero_rtt(), "0-RTT with zero_rtt = false");
+            assert_eq!(c.fetch(3, off, size).await.unwrap().len(), size as usize);
+            if round == 0 {
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            c.close();
+        }
+        strict.shutdown().await;
         assert_healthy(&fx).await;
         fx.h.shutdown().await;
     });
 }
 
-/// Connects once (to receive a session ticket), then tries 0-RTT on a
-/// second connection; returns whether 0-RTT was possible.
-async fn try_0rtt(addr: std::net::SocketAddr, tls: Arc<rustls::ClientConfig>) -> bool {
+async fn handshakes_ok(h: &ServerHandle) -> f64 {
+    metric(
+        &scrape(h).await,
+        "planet_handshakes_total",
+        &[("outcome", "ok")],
+    )
+}
+
+/// A UDP relay in front of a server (20 ms from server to client) that
+/// records the client's first flight
+/// (its datagrams that start with an Initial or a 0-RTT packet: the
+/// ClientHello and the early data) so it can be replayed.
+struct Replayer {
+    addr: std::net::SocketAddr,
+    first_flight: Arc<Mutex<Vec<Vec<u8>>>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Replayer {
+    async fn start(server: std::net::SocketAddr) -> Replayer {
+        let down = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
+        let up = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let addr = down.local_addr().unwrap();
+        let first_flight = Arc::new(Mutex::new(Vec::new()));
+        let flight = Arc::clone(&first_flight);
+        let task = tokio::spawn(async move {
+            let (mut a, mut b) = (vec![0u8; 65536], vec![0u8; 65536]);
+            let mut client = None;
+            loop {
+                tokio::select! {
+                    r = down.recv_from(&mut a) => {
+                        let Ok((n, from)) = r else { return };
+                        client = Some(from);
+                        if is_initial_or_0rtt(&a[..n]) {
+                            flight.lock().unwrap().push(a[..n].to_vec());
+                        }
+                        let _ = up.send_to(&a[..n], server).await;
+                    }
+                    r = up.recv_from(&mut b) => {
+                        let Ok((n, _)) = r else { return };
+                        if let Some(c) = client {
+                            // 20 ms on the way back: the client's Hello
+                            // leaves as 0-RTT before any answer can arrive,
+                            // however the threads are scheduled.
+                            let (down, d) = (Arc::clone(&down), b[..n].to_vec());
+                            tokio::spawn(async move {
+                                tokio::time::sleep(Duration::from_millis(20)).await;
+                                let _ = down.send_to(&d, c).await;
+                            });
+                        }
+                    }
+                }
+            }
+        });
+        Replayer {
+            addr,
+            first_flight,
+            task,
+        }
+    }
+
+    /// Sends the recorded first flight to `server` from a new socket, which
+    /// is returned (kept open, never answering).
+    async fn replay(&self, server: std::net::SocketAddr) -> tokio::net::UdpSocket {
+        let flight = self.first_flight.lock().unwrap().clone();
+        assert!(
+            flight.iter().any(|d| long_header_types(d).contains(&1)),
+            "no 0-RTT packet recorded"
+        );
+        let s = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        for d in flight {
+            s.send_to(&d, server).await.unwrap();
+        }
+        s
+    }
+}
+
+/// A datagram whose first packet has a long header of type Initial or 0-RTT.
+fn is_initial_or_0rtt(d: &[u8]) -> bool {
+    long_header_types(d).first().is_some_and(|&t| t <= 1)
+}
+
+/// The types (0 Initial, 1 0-RTT, 2 Handshake, 3 Retry) of the coalesced
+/// long-header packets at the start of a datagram (RFC 9000 §17.2, §12.2).
+fn long_header_types(d: &[u8]) -> Vec<u8> {
+    fn varint(d: &[u8], i: &mut usize) -> Option<usize> {
+        let first = *d.get(*i)?;
+        let len = 1usize << (first >> 6);
+        let mut v = u64::from(first & 0x3f);
+        for k in 1..len {
+            v = (v << 8) | u64::from(*d.get(*i + k)?);
+        }
+        *i += len;
+        usize::try_from(v).ok()
+    }
+    let mut types = Vec::new();
+    let mut i = 0;
+    while let Some(&flags) = d.get(i) {
+        if flags & 0x80 == 0 {
+            break;
+        }
+        let ty = (flags & 0x30) >> 4;
+        types.push(ty);
+        if ty == 3 {
+            break;
+        }
+        let mut j = i + 5;
+        for _ in 0..2 {
+            let Some(&n) = d.get(j) else { return types };
+            j += 1 + usize::from(n);
+        }
+        if ty == 0 {
+            let Some(t) = varint(d, &mut j) else {
+                return types;
+            };
+            j += t;
+        }
+        let Some(len) = varint(d, &mut j) else {
+            return types;
+        };
+        i = j + len;
+    }
+    types
+}
+
+impl Drop for Replayer {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// A session store whose tickets can be redeemed any number of times (`take`
+/// keeps the session): what planet-server must not do.
+#[derive(Debug, Default)]
+struct ReusableSessions(Mutex<std::collections::HashMap<Vec<u8>, Vec<u8>>>);
+
+impl rustls::server::StoresServerSessions for ReusableSessions {
+    fn put(&self, key: Vec<u8>, value: Vec<u8>) -> bool {
+        self.0.lock().unwrap().insert(key, value);
+        true
+    }
+    fn get(&self, key: &[u8]) -> Option<Vec<u8>> {
+        self.0.lock().unwrap().get(key).cloned()
+    }
+    fn take(&self, key: &[u8]) -> Option<Vec<u8>> {
+        self.get(key)
+    }
+    fn can_cache(&self) -> bool {
+        true
+    }
+}
+
+/// A bare quinn server with reusable session tickets
+/// ([`ReusableSessions`]) and 0-RTT. A client connects once
+/// for a ticket, then again through a [`Replayer`] sending a stream in 0-RTT;
+/// the recorded flight is replayed. Returns how many times the server read
+/// that stream's early data.
+async fn replay_against_reusable_tickets() -> usize {
+    let ck = planet_server::tls::CertKey::dev_cert().unwrap();
+    let mut scfg = planet_server::tls::rustls_server_config(&ck, true).unwrap();
+    scfg.session_storage = Arc::new(ReusableSessions::default());
+    let qcfg = quinn::crypto::rustls::QuicServerConfig::try_from(scfg).unwrap();
+    let sep = quinn::Endpoint::server(
+        quinn::ServerConfig::with_crypto(Arc::new(qcfg)),
+        "127.0.0.1:0".parse().unwrap(),
+    )
+    .unwrap();
+    let saddr = sep.local_addr().unwrap();
+    let seen = Arc::new(AtomicUsize::new(0));
+    let acceptor = tokio::spawn({
+        let (sep, seen) = (sep.clone(), Arc::clone(&seen));
+        async move {
+            while let Some(inc) = sep.accept().await {
+                let seen = Arc::clone(&seen);
+                tokio::spawn(async move {
+                    let Ok(c) = inc.accept() else { return };
+                    let Ok((conn, _)) = c.into_0rtt() else { return };
+                    while let Ok((_send, mut recv)) = conn.accept_bi().await {
+                        if recv.read_to_end(64).await.as_deref() == Ok(b"early".as_slice()) {
+                            seen.fetch_add(1, Ordering::SeqCst);
+                        }
+                    }
+                });
+            }
+        }
+    });
+    let fp = planet_server::tls::sha256_hex(ck.leaf_der());
+    let mut tls = (*planet_client::tls::pinned(&fp).unwrap()).clone();
+    tls.enable_early_data = true;
+    let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(Arc::new(tls)).unwrap();
     let mut ep = quinn::Endpoint::client("127.0.0.1:0".parse().unwrap()).unwrap();
-    let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap();
     ep.set_default_client_config(quinn::ClientConfig::new(Arc::new(crypto)));
-    let first = ep.connect(addr, "localhost").unwrap().await.unwrap();
-    // Tickets arrive after the handshake; give them time.
+    let first = ep.connect(saddr, "localhost").unwrap().await.unwrap();
     tokio::time::sleep(Duration::from_millis(200)).await;
     first.close(0u32.into(), b"");
-    let connecting = ep.connect(addr, "localhost").unwrap();
-    let early = match connecting.into_0rtt() {
-        Ok((conn, _accepted)) => {
-            conn.close(0u32.into(), b"");
-            true
-        }
-        Err(connecting) => {
-            // 1-RTT still works.
-            let conn = connecting.await.expect("1-RTT after refused 0-RTT");
-            conn.close(0u32.into(), b"");
-            false
-        }
-    };
-    ep.wait_idle().await;
-    early
+    let relay = Replayer::start(saddr).await;
+    let (conn, accepted) = ep
+        .connect(relay.addr, "localhost")
+        .unwrap()
+        .into_0rtt()
+        .unwrap_or_else(|_| panic!("control: no 0-RTT"));
+    let (mut send, _recv) = conn.open_bi().await.unwrap();
+    send.write_all(b"early").await.unwrap();
+    send.finish().unwrap();
+    assert!(accepted.await, "control: 0-RTT refused");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    conn.close(0u32.into(), b"");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let _attacker = relay.replay(saddr).await;
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    sep.close(0u32.into(), b"");
+    acceptor.abort();
+    seen.load(Ordering::SeqCst)
 }
 
 #[test]

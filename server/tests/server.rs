@@ -605,6 +605,7 @@ fn session_reconnects_after_server_restart() {
         panic!("event not received");
     };
     wait_for(&|e| matches!(e, NetEvent::Connected(_)));
+    assert!(!session.used_zero_rtt() && !session.zero_rtt_refused());
     let (off, size) = recs[0];
     session.request(1, off, size);
     match wait_for(&|e| matches!(e, NetEvent::Record { .. } | NetEvent::Failed { .. })) {
@@ -633,6 +634,14 @@ fn session_reconnects_after_server_restart() {
     }
     let h2 = h2.expect("restart on the same port");
     wait_for(&|e| matches!(e, NetEvent::Connected(_)));
+    // The session kept its ticket from the first server and tried 0-RTT;
+    // the restarted server does not know the ticket, refused the early data,
+    // and the Hello went again after the handshake.
+    assert!(
+        session.zero_rtt_refused(),
+        "0-RTT was not tried and refused"
+    );
+    assert!(!session.used_zero_rtt());
     session.request(2, off, size);
     match wait_for(&|e| matches!(e, NetEvent::Record { .. } | NetEvent::Failed { .. })) {
         NetEvent::Record { id, .. } => assert_eq!(id, 2),
