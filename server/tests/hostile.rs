@@ -619,33 +619,23 @@ fn replayed_token_is_accepted_by_design_and_0rtt_cannot_be_replayed() {
         let tls = tls_for(&fx.h);
         let opts = ConnectOptions::default();
         let relay = Replayer::start(fx.h.local_addr()).await;
-        let (c1, _) = Connection::connect_with(
-            fx.h.local_addr(),
-            "localhost",
-            Arc::clone(&tls),
-            acme(),
-            &opts,
-        )
-        .await
-        .unwrap();
+        let c1 = connect_as(fx.h.local_addr(), &tls, acme(), &opts)
+            .await
+            .unwrap();
         assert!(!c1.used_zero_rtt(), "a first connection cannot resume");
         assert_eq!(c1.fetch(1, off, size).await.unwrap().len(), size as usize);
         // Session tickets arrive after the handshake.
         tokio::time::sleep(Duration::from_millis(200)).await;
         c1.close();
         let hellos = handshakes_ok(&fx.h).await;
-        let (c2, _) =
-            Connection::connect_with(relay.addr, "localhost", Arc::clone(&tls), acme(), &opts)
-                .await
-                .unwrap();
+        let c2 = connect_as(relay.addr, &tls, acme(), &opts).await.unwrap();
         assert!(c2.used_zero_rtt(), "the resumed session did not use 0-RTT");
         assert_eq!(c2.fetch(2, off, size).await.unwrap().len(), size as usize);
         c2.close();
         assert_eq!(handshakes_ok(&fx.h).await, hellos + 1.0);
         // A wrong token in 0-RTT is refused with its code like any other.
         let bad = Hello::new("acme", "s3creT", "earth");
-        match Connection::connect_with(relay.addr, "localhost", Arc::clone(&tls), bad, &opts).await
-        {
+        match connect_as(relay.addr, &tls, bad, &opts).await {
             Err(NetError::Rejected(e)) => assert_eq!(e.code, ErrorCode::Unauthorized),
             other => panic!("expected unauthorized, got {:?}", other.err()),
         }
@@ -668,8 +658,8 @@ fn replayed_token_is_accepted_by_design_and_0rtt_cannot_be_replayed() {
         // check above is not vacuous.
         assert_eq!(replay_against_reusable_tickets().await, 2);
 
-        // With `zero_rtt = false` the resumed client's early data is refused
-        // and it sends its Hello again after the handshake.
+        // With `zero_rtt = false` the server's tickets do not allow early
+        // data: a resuming client does not even try 0-RTT.
         let dir = tempfile::tempdir().unwrap();
         let (mut cfg, recs) = two_tenant_config(dir.path());
         cfg.zero_rtt = false;
@@ -678,16 +668,14 @@ fn replayed_token_is_accepted_by_design_and_0rtt_cannot_be_replayed() {
         let tls = tls_for(&strict);
         let opts = ConnectOptions::default();
         for round in 0..2 {
-            let (c, _) = Connection::connect_with(
-                strict.local_addr(),
-                "localhost",
-                Arc::clone(&tls),
-                acme(),
-                &opts,
-            )
-            .await
-            .unwrap();
+            let c = connect_as(strict.local_addr(), &tls, acme(), &opts)
+                .await
+                .unwrap();
             assert!(!c.used_zero_rtt(), "0-RTT with zero_rtt = false");
+            assert!(
+                !c.zero_rtt_refused(),
+                "early data tried with zero_rtt = false"
+            );
             assert_eq!(c.fetch(3, off, size).await.unwrap().len(), size as usize);
             if round == 0 {
                 tokio::time::sleep(Duration::from_millis(200)).await;
@@ -698,6 +686,17 @@ fn replayed_token_is_accepted_by_design_and_0rtt_cannot_be_replayed() {
         assert_healthy(&fx).await;
         fx.h.shutdown().await;
     });
+}
+
+async fn connect_as(
+    addr: std::net::SocketAddr,
+    tls: &Arc<rustls::ClientConfig>,
+    hello: Hello,
+    opts: &ConnectOptions,
+) -> Result<Connection, NetError> {
+    Connection::connect_with(addr, "localhost", Arc::clone(tls), hello, opts)
+        .await
+        .map(|(c, _)| c)
 }
 
 async fn handshakes_ok(h: &ServerHandle) -> f64 {
