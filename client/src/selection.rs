@@ -29,7 +29,9 @@ use crate::importance::{
     split_importance, wants_merge, wants_split, ScreenError,
 };
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
-use crate::tree::{Blocked, FastMap, Node, PartialTree, TreeChanges, TreeStamp};
+use crate::tree::{
+    Blocked, ChangeKind, FastMap, LinkedTree, Node, PartialTree, TreeChange, TreeChanges, TreeStamp,
+};
 use crate::visibility::{BlockBounds, View};
 use glam::DVec3;
 use planet_core::format::{ChildRef, Tree};
@@ -454,6 +456,10 @@ pub struct Selector {
     draw_idx: Vec<u32>,
     last_draw: usize,
     rebuilds: u64,
+    splices: u64,
+    /// Scratch space (traversal stack, per-node indices).
+    stack: Vec<(BlockId, u32)>,
+    scratch: Vec<u32>,
     /// Importance and screen-space error per elevation node and importance
     /// per colour node, valid while the inputs besides the node are the
     /// same ([`MemoKey`]; they do not depend on the view direction).
@@ -505,6 +511,12 @@ impl Selector {
         self.rebuilds
     }
 
+    /// Times splits and merges were applied to the cache without a rebuild
+    /// (statistics and tests).
+    pub fn splices(&self) -> u64 {
+        self.splices
+    }
+
     fn update(&mut self, tree: &PartialTree) {
         let changes = match &self.stamp {
             None => TreeChanges::Structure,
@@ -512,9 +524,14 @@ impl Selector {
         };
         match changes {
             TreeChanges::Structure => self.rebuild(tree),
-            TreeChanges::Refined(list) => {
-                for (kind, id) in list {
-                    self.patch(tree, *kind, id);
+            TreeChanges::Log(list) => {
+                if list.iter().any(|c| c.kind != ChangeKind::Refined) {
+                    self.splice(tree, list);
+                }
+                // A patch reads the node's current state, so refines logged
+                // before a split or merge are applied after the splice.
+                for c in list.iter().filter(|c| c.kind == ChangeKind::Refined) {
+                    self.patch(tree, c.tree, &c.block);
                 }
             }
         }
@@ -574,6 +591,137 @@ impl Selector {
         }
     }
 
+    /// Append an elevation node (pre-order: its parent is already in) and
+    /// link it to its parent (or as its face's root).
+    fn push_node(&mut self, id: BlockId, hot: Hot, cold: Cold, memo: Memo) -> u32 {
+        let i = self.hot.len() as u32;
+        match hot.parent {
+            NONE => self.roots[id.face.index() as usize] = i,
+            p => self.children[p as usize][id.child_index()] = i,
+        }
+        self.hot.push(hot);
+        self.cold.push(cold);
+        self.ids.push(id);
+        self.children.push([NONE; 4]);
+        self.hint.push(0);
+        self.witness.push(None);
+        self.memo.push(memo);
+        i
+    }
+
+    /// Append the elevation subtree of `root` read from the tree
+    /// (pre-order, one hash lookup per node), under node `parent`, with
+    /// every subtree ball set to the node's own ball.
+    fn push_subtree(&mut self, et: &LinkedTree, root: BlockId, parent: u32) {
+        let mut stack = std::mem::take(&mut self.stack);
+        stack.clear();
+        stack.push((root, parent));
+        while let Some((id, parent)) = stack.pop() {
+            let Some(n) = et.get(&id) else { continue };
+            let Some(b) = n.bounds.as_ref() else { continue };
+            let own = b.parts.iter().fold((b.centre, b.sphere_radius), |s, p| {
+                ball_union(s, (p.centre, p.sphere_radius))
+            });
+            let hot = Hot {
+                sub: own,
+                centre: b.centre,
+                radius: b.radius,
+                parent,
+                split: n.split,
+                lod: n.lod,
+                splittable: n.can_split_data().is_ok(),
+            };
+            let cold = Cold {
+                own,
+                bounds: b.clone(),
+                err1: n.record.error as f64,
+                err0: child_error(n),
+                record: n.record,
+                colour: Binding::None,
+            };
+            let i = self.push_node(id, hot, cold, Memo::default());
+            if n.split {
+                stack.extend(id.children().map(|c| (c, i)));
+            }
+        }
+        self.stack = stack;
+    }
+
+    /// Subtree balls of the nodes `range` (a subtree in pre-order whose
+    /// balls are the nodes' own), children (later in pre-order) first.
+    fn union_subtree_balls(&mut self, range: std::ops::Range<usize>) {
+        for i in (range.start + 1..range.end).rev() {
+            let (p, s) = (self.hot[i].parent, self.hot[i].sub);
+            if p != NONE {
+                let h = &mut self.hot[p as usize];
+                h.sub = ball_union(h.sub, s);
+            }
+        }
+    }
+
+    /// The deepest node covering the same-level neighbour of node `i`
+    /// across `Edge::ALL[k]` (Alg. 4.1 top-down): it is `i`'s sibling or
+    /// found from its parent's neighbour (`self.nb` holds the parent's).
+    fn neighbour_of(&self, i: usize, k: usize) -> u32 {
+        let id = self.ids[i];
+        let p = self.hot[i].parent;
+        let e = Edge::ALL[k];
+        let same = id.neighbour(e).0;
+        let start = match same.parent() {
+            Some(sp) if p != NONE && sp == self.ids[p as usize] => p,
+            Some(sp) if p != NONE && self.ids[p as usize].neighbour(e).0 == sp => {
+                self.nb[p as usize][k]
+            }
+            _ => self.roots[same.face.index() as usize],
+        };
+        self.covering_from(start, &same)
+    }
+
+    /// Colour bindings: the deepest colour node on each leaf's elevation
+    /// path (every colour node has its elevation node, §4.4.1).
+    fn bind_colours(&mut self) {
+        let n = self.hot.len();
+        let mut cov = std::mem::take(&mut self.scratch);
+        cov.clear();
+        cov.resize(n, NONE);
+        for i in 0..n {
+            let j = self.col_of_elev[i];
+            cov[i] = if j != NONE {
+                j
+            } else {
+                match self.hot[i].parent {
+                    NONE => NONE,
+                    p => cov[p as usize],
+                }
+            };
+            self.cold[i].colour = if self.hot[i].split {
+                Binding::None
+            } else {
+                match cov[i] {
+                    NONE => Binding::None,
+                    j if self.cnodes[j as usize].split => Binding::Tree(self.cnodes[j as usize].id),
+                    j => Binding::Node(j),
+                }
+            };
+        }
+        self.scratch = cov;
+    }
+
+    fn clear(&mut self) {
+        self.hot.clear();
+        self.cold.clear();
+        self.ids.clear();
+        self.children.clear();
+        self.nb.clear();
+        self.col_of_elev.clear();
+        self.hint.clear();
+        self.witness.clear();
+        self.memo.clear();
+        self.cmemo.clear();
+        self.cnodes.clear();
+        self.roots = [NONE; 6];
+    }
+
     /// Flatten the trees (pre-order, as [`select`] traverses them). One
     /// hash lookup per node (the tree's own map); neighbours, colour nodes
     /// and bindings follow from the flat parent/children links.
@@ -583,61 +731,10 @@ impl Selector {
         let old_hint = std::mem::take(&mut self.hint);
         let old_witness = std::mem::take(&mut self.witness);
         let old_cold = std::mem::take(&mut self.cold);
-        self.hot.clear();
-        self.children.clear();
-        self.nb.clear();
-        self.col_of_elev.clear();
-        self.memo.clear();
-        self.cmemo.clear();
-        self.cnodes.clear();
-        self.roots = [NONE; 6];
+        self.clear();
         let et = tree.elevation();
-        let mut stack: Vec<(BlockId, u32)> = Vec::with_capacity(64);
         for f in Face::ALL {
-            stack.push((BlockId::root(f), NONE));
-            while let Some((id, parent)) = stack.pop() {
-                let Some(n) = et.get(&id) else { continue };
-                let Some(b) = n.bounds.as_ref() else { continue };
-                let i = self.hot.len() as u32;
-                if parent == NONE {
-                    self.roots[f.index() as usize] = i;
-                } else {
-                    self.children[parent as usize][id.child_index()] = i;
-                }
-                let own = b.parts.iter().fold((b.centre, b.sphere_radius), |s, p| {
-                    ball_union(s, (p.centre, p.sphere_radius))
-                });
-                self.hot.push(Hot {
-                    sub: own,
-                    centre: b.centre,
-                    radius: b.radius,
-                    parent,
-                    split: n.split,
-                    lod: n.lod,
-                    splittable: n.can_split_data().is_ok(),
-                });
-                self.cold.push(Cold {
-                    own,
-                    bounds: b.clone(),
-                    err1: n.record.error as f64,
-                    err0: child_error(n),
-                    record: n.record,
-                    colour: Binding::None,
-                });
-                self.ids.push(id);
-                self.children.push([NONE; 4]);
-                self.hint.push(0);
-                self.witness.push(None);
-                self.memo.push(Memo {
-                    gen: 0,
-                    imp: 0.0,
-                    sse_lod: NOT_DRAWN,
-                    sse: 0.0,
-                });
-                if n.split {
-                    stack.extend(id.children().map(|c| (c, i)));
-                }
-            }
+            self.push_subtree(et, BlockId::root(f), NONE);
         }
         let n = self.hot.len();
         // Keep the hints and witnesses of nodes that stay (same bounds).
@@ -652,36 +749,15 @@ impl Selector {
                 }
             }
         }
-        // Subtree balls, children (later in pre-order) first.
-        for i in (1..n).rev() {
-            let (p, s) = (self.hot[i].parent, self.hot[i].sub);
-            if p != NONE {
-                let h = &mut self.hot[p as usize];
-                h.sub = ball_union(h.sub, s);
-            }
-        }
-        // Neighbours (Alg. 4.1 top-down): the same-level neighbour of a
-        // child is its sibling or a child of its parent's neighbour.
+        self.union_subtree_balls(0..n);
         for i in 0..n {
-            let id = self.ids[i];
-            let p = self.hot[i].parent;
-            let mut nb = [NONE; 4];
-            for (k, e) in Edge::ALL.iter().enumerate() {
-                let same = id.neighbour(*e).0;
-                let start = match same.parent() {
-                    Some(sp) if p != NONE && sp == self.ids[p as usize] => p,
-                    Some(sp) if p != NONE && self.ids[p as usize].neighbour(*e).0 == sp => {
-                        self.nb[p as usize][k]
-                    }
-                    _ => self.roots[same.face.index() as usize],
-                };
-                nb[k] = self.covering_from(start, &same);
-            }
+            let nb = std::array::from_fn(|k| self.neighbour_of(i, k));
             self.nb.push(nb);
         }
         // Colour nodes, with their elevation nodes (same ids).
         self.col_of_elev.resize(n, NONE);
         if let Some(ct) = tree.colour() {
+            let mut stack: Vec<(BlockId, u32)> = Vec::with_capacity(64);
             for f in Face::ALL {
                 stack.push((BlockId::root(f), self.roots[f.index() as usize]));
                 while let Some((id, elev)) = stack.pop() {
@@ -714,30 +790,265 @@ impl Selector {
                     }
                 }
             }
-            // Colour bindings: the deepest colour node on each leaf's
-            // elevation path (every colour node has its elevation node).
-            let mut cov = vec![NONE; n];
-            for i in 0..n {
-                let j = self.col_of_elev[i];
-                cov[i] = if j != NONE {
-                    j
-                } else {
-                    match self.hot[i].parent {
-                        NONE => NONE,
-                        p => cov[p as usize],
+        }
+        self.bind_colours();
+    }
+
+    /// Apply logged splits and merges to the flat arrays (thesis §3.4.1)
+    /// without reading the unchanged nodes from the tree: one pass over the
+    /// old arrays in pre-order copies every node outside a changed subtree
+    /// (with its bounds, witnesses and memoised values) and re-reads each
+    /// changed node's subtree from the tree in its place; then
+    ///
+    /// - subtree balls are recomputed in the re-read subtrees and up their
+    ///   ancestor chains;
+    /// - a kept node keeps its neighbours (Alg. 4.1) unless one of them was
+    ///   changed or removed: the neighbour across an edge is the deepest
+    ///   node covering the same-level neighbour, which only a split or merge
+    ///   on its path can change, and a split or merge below it needs it to
+    ///   be split and at least the same level, so that it still covers;
+    /// - colour nodes (§4.4.1) are copied in elevation pre-order, which is
+    ///   the colour tree's pre-order (a colour node exists exactly under a
+    ///   split colour parent), re-read only where the colour tree changed;
+    ///   bindings are recomputed from the flat links.
+    fn splice(&mut self, tree: &PartialTree, list: &[TreeChange]) {
+        self.splices += 1;
+        let old_n = self.ids.len();
+        // Old nodes to re-read (elevation: with their subtrees).
+        let mut edirty = vec![false; old_n];
+        let mut cdirty = vec![false; self.cnodes.len()];
+        for c in list.iter().filter(|c| c.kind != ChangeKind::Refined) {
+            // A changed node missing from the cache lies under a node that
+            // was a leaf and is changed too.
+            let Some(k) = self.find(&c.block) else {
+                continue;
+            };
+            match c.tree {
+                Tree::Elevation => edirty[k] = true,
+                Tree::Colour => {
+                    if let Some(j) = self.col_of_elev.get(k).filter(|j| **j != NONE) {
+                        cdirty[*j as usize] = true;
                     }
-                };
-                if !self.hot[i].split {
-                    self.cold[i].colour = match cov[i] {
-                        NONE => Binding::None,
-                        j if self.cnodes[j as usize].split => {
-                            Binding::Tree(self.cnodes[j as usize].id)
-                        }
-                        j => Binding::Node(j),
-                    };
                 }
             }
         }
+        let old_ids = std::mem::take(&mut self.ids);
+        let old_hot = std::mem::take(&mut self.hot);
+        let old_cold = std::mem::take(&mut self.cold);
+        let old_nb = std::mem::take(&mut self.nb);
+        let old_hint = std::mem::take(&mut self.hint);
+        let old_witness = std::mem::take(&mut self.witness);
+        let old_memo = std::mem::take(&mut self.memo);
+        let old_col = std::mem::take(&mut self.col_of_elev);
+        let old_cnodes = std::mem::take(&mut self.cnodes);
+        let old_cmemo = std::mem::take(&mut self.cmemo);
+        self.clear();
+        self.hot.reserve(old_n + 64);
+        self.cold.reserve(old_n + 64);
+        self.ids.reserve(old_n + 64);
+        self.children.reserve(old_n + 64);
+        self.hint.reserve(old_n + 64);
+        self.witness.reserve(old_n + 64);
+        self.memo.reserve(old_n + 64);
+        let et = tree.elevation();
+        // Old index → new index (NONE: changed or removed), new → old.
+        let mut remap = vec![NONE; old_n];
+        let mut from_old: Vec<u32> = Vec::with_capacity(old_n + 64);
+        let mut fresh: Vec<std::ops::Range<usize>> = Vec::new();
+        let mut cold_it = old_cold.into_iter();
+        let mut k = 0;
+        while k < old_n {
+            let Some(oc) = cold_it.next() else { break };
+            let id = old_ids[k];
+            let mut h = old_hot[k];
+            // A kept node's parent is kept (a changed parent's old subtree
+            // is skipped whole).
+            h.parent = match h.parent {
+                NONE => NONE,
+                p => remap[p as usize],
+            };
+            if !edirty[k] {
+                let i = self.push_node(id, h, oc, old_memo[k]);
+                self.hint[i as usize] = old_hint[k];
+                self.witness[i as usize] = old_witness[k];
+                remap[k] = i;
+                from_old.push(k as u32);
+                k += 1;
+                continue;
+            }
+            let mut end = k + 1;
+            while end < old_n && old_ids[end].level > id.level {
+                cold_it.next();
+                end += 1;
+            }
+            let start = self.hot.len();
+            self.push_subtree(et, id, h.parent);
+            let now = self.hot.len();
+            from_old.resize(now, NONE);
+            if now > start {
+                // A merged or split node keeps its bounds, and with them its
+                // visibility witnesses.
+                if Arc::ptr_eq(&self.cold[start].bounds, &oc.bounds) {
+                    self.hint[start] = old_hint[k];
+                    self.witness[start] = old_witness[k];
+                }
+                fresh.push(start..now);
+            }
+            k = end;
+        }
+        drop(cold_it);
+        let n = self.hot.len();
+        // Subtree balls: the re-read subtrees, then their ancestors
+        // (descendants first: later in pre-order).
+        let mut up: Vec<u32> = Vec::new();
+        for r in &fresh {
+            self.union_subtree_balls(r.clone());
+            let mut p = self.hot[r.start].parent;
+            while p != NONE {
+                up.push(p);
+                p = self.hot[p as usize].parent;
+            }
+        }
+        up.sort_unstable_by(|a, b| b.cmp(a));
+        up.dedup();
+        for a in up {
+            let a = a as usize;
+            let mut s = self.cold[a].own;
+            for c in self.children[a] {
+                if c != NONE {
+                    s = ball_union(s, self.hot[c as usize].sub);
+                }
+            }
+            self.hot[a].sub = s;
+        }
+        // Neighbours: kept where the old one is kept, else top-down.
+        self.nb.reserve(n);
+        for i in 0..n {
+            let ok = from_old[i];
+            let nb = std::array::from_fn(|e| {
+                if ok != NONE {
+                    let t = old_nb[ok as usize][e];
+                    if t != NONE && remap[t as usize] != NONE {
+                        return remap[t as usize];
+                    }
+                }
+                self.neighbour_of(i, e)
+            });
+            self.nb.push(nb);
+        }
+        // Colour nodes in elevation pre-order.
+        self.col_of_elev.resize(n, NONE);
+        if let Some(ct) = tree.colour() {
+            self.cnodes.reserve(old_cnodes.len() + 16);
+            self.cmemo.reserve(old_cnodes.len() + 16);
+            for i in 0..n {
+                let exists = match self.hot[i].parent {
+                    NONE => true,
+                    p => {
+                        let pc = self.col_of_elev[p as usize];
+                        pc != NONE && self.cnodes[pc as usize].split
+                    }
+                };
+                if !exists {
+                    continue;
+                }
+                let ok = from_old[i];
+                let oj = if ok != NONE {
+                    old_col[ok as usize]
+                } else {
+                    NONE
+                };
+                let (c, m) = if oj != NONE && !cdirty[oj as usize] {
+                    let mut c = old_cnodes[oj as usize].clone();
+                    c.elev = i as u32;
+                    (c, old_cmemo[oj as usize])
+                } else {
+                    let id = self.ids[i];
+                    let Some(cn) = ct.get(&id) else { continue };
+                    let c = CNode {
+                        id,
+                        elev: i as u32,
+                        split: cn.split,
+                        lod: cn.lod,
+                        splittable: cn.can_split_data().is_ok(),
+                        record: cn.record,
+                    };
+                    (c, (0, 0.0))
+                };
+                self.col_of_elev[i] = self.cnodes.len() as u32;
+                self.cnodes.push(c);
+                self.cmemo.push(m);
+            }
+        }
+        self.bind_colours();
+    }
+
+    /// Compare the cache with one rebuilt from scratch from `tree` (a
+    /// consistency check for tests and debugging: the splices of
+    /// [`PartialTree::changes_since`]'s log must give the same flat trees).
+    /// Subtree balls may differ but must hold the node's own ball and its
+    /// children's. Call it right after [`Selector::select`] on the same
+    /// tree.
+    pub fn consistency_error(&self, tree: &PartialTree) -> Option<String> {
+        let mut f = Selector::new();
+        f.rebuild(tree);
+        if self.ids != f.ids {
+            return Some(format!(
+                "node ids differ ({} cached, {} fresh)",
+                self.ids.len(),
+                f.ids.len()
+            ));
+        }
+        if self.roots != f.roots || self.children != f.children || self.nb != f.nb {
+            return Some("roots, children or neighbours differ".into());
+        }
+        for i in 0..self.ids.len() {
+            let (a, b) = (&self.hot[i], &f.hot[i]);
+            let (ca, cb) = (&self.cold[i], &f.cold[i]);
+            let same = a.centre == b.centre
+                && a.radius == b.radius
+                && a.parent == b.parent
+                && a.split == b.split
+                && a.lod == b.lod
+                && a.splittable == b.splittable
+                && ca.own == cb.own
+                && Arc::ptr_eq(&ca.bounds, &cb.bounds)
+                && ca.err1 == cb.err1
+                && ca.err0 == cb.err0
+                && ca.record == cb.record
+                && ca.colour == cb.colour;
+            if !same {
+                return Some(format!("node {:?} differs", self.ids[i]));
+            }
+            let holds = |outer: (DVec3, f64), inner: (DVec3, f64)| {
+                (outer.0 - inner.0).length() + inner.1 <= outer.1 * (1.0 + 1e-12) + 1e-6
+            };
+            let mut inner = vec![ca.own];
+            inner.extend(
+                self.children[i]
+                    .iter()
+                    .filter(|c| **c != NONE)
+                    .map(|c| self.hot[*c as usize].sub),
+            );
+            if !inner.iter().all(|b| holds(a.sub, *b)) {
+                return Some(format!("subtree ball of {:?} too small", self.ids[i]));
+            }
+        }
+        if self.col_of_elev != f.col_of_elev {
+            return Some("colour node links differ".into());
+        }
+        for (a, b) in self.cnodes.iter().zip(&f.cnodes) {
+            let same = a.id == b.id
+                && a.elev == b.elev
+                && a.split == b.split
+                && a.lod == b.lod
+                && a.splittable == b.splittable
+                && a.record == b.record;
+            if !same {
+                return Some(format!("colour node {:?} differs", a.id));
+            }
+        }
+        (self.cnodes.len() != f.cnodes.len()).then(|| "colour node counts differ".into())
     }
 
     /// Select the LODs to draw and trigger requests for one frame: the same
