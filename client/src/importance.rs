@@ -59,6 +59,33 @@ pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -
     (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
 }
 
+/// [`importance`] of a split block where [`wants_merge`] may hold, `None`
+/// where it certainly does not, without the logarithm (the per-frame
+/// selection asks this of every split block, §3.6.4): `importance > 0`
+/// needs `quality < 1`, since `log2` (faithfully rounded, exact at 1) is
+/// `≥ 0` from 1 up. Where it returns `Some`, the value is [`importance`]'s.
+pub fn merge_importance(
+    distance: f64,
+    block_radius: f64,
+    block_width: f64,
+    qf: f64,
+) -> Option<f64> {
+    if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    // As in `importance`.
+    let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
+        qf.max(0.0).sqrt()
+    } else {
+        f64::MAX.sqrt()
+    };
+    let quality = q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance);
+    if quality >= 1.0 {
+        return None;
+    }
+    Some(importance(distance, block_radius, block_width, qf))
+}
+
 /// The LOD to render: `ceil(importance)` clamped to `[0, 1]`
 /// (`ceil(x) ≥ 1` exactly when `x > 0`, also false for NaN).
 pub fn selected_lod(importance: f64) -> u8 {
@@ -146,6 +173,28 @@ mod tests {
             prop_assert!(a.is_finite() && b.is_finite());
             if d1 <= d2 { prop_assert!(a <= b); }
             prop_assert!(screen_space_error(3.0, d1, 1080.0, 1.0).is_finite());
+        }
+    }
+
+    proptest! {
+        /// `merge_importance` is `importance` wherever a merge may be
+        /// wanted, and `None` only where it is not (also around quality 1).
+        #[test]
+        fn merge_importance_agrees(d in -1e7f64..1e13, r in 0.0f64..1e7, w in prop_oneof![Just(8.0), Just(64.0)], qf in prop_oneof![Just(0.0), 0.0f64..1e12, Just(f64::INFINITY)], ulps in -4i64..4) {
+            // Also put the quality within a few ulps of 1.
+            let q1 = qf.sqrt();
+            let d1 = if q1 > 0.0 && q1.is_finite() && r > 0.0 {
+                f64::from_bits(((q1 * r / w).to_bits() as i64 + ulps) as u64)
+            } else {
+                d
+            };
+            for d in [d, d1] {
+                let imp = importance(d, r, w, qf);
+                match merge_importance(d, r, w, qf) {
+                    Some(m) => prop_assert_eq!(m.to_bits(), imp.to_bits()),
+                    None => prop_assert!(!wants_merge(imp), "{} {} {} {}", d, r, w, qf),
+                }
+            }
         }
     }
 

@@ -25,8 +25,8 @@
 //! when it is positive; split (finer) or invisible neighbours give `None`.
 
 use crate::importance::{
-    block_distance, importance, refine_importance, screen_space_error, selected_lod,
-    split_importance, wants_merge, wants_split, ScreenError,
+    block_distance, importance, merge_importance, refine_importance, screen_space_error,
+    selected_lod, split_importance, wants_merge, wants_split, ScreenError,
 };
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{
@@ -327,6 +327,9 @@ impl Ctx<'_> {
 const NONE: u32 = u32::MAX;
 /// Not drawn (per-frame LOD sentinel).
 const NOT_DRAWN: u8 = u8::MAX;
+/// Memoised importance of a split block that does not want to merge
+/// ([`merge_importance`] is `None`; `wants_merge` is false for NaN).
+const NO_MERGE: f64 = f64::NAN;
 
 /// Per-frame inputs of one elevation node of the cached flat tree
 /// (pre-order, the traversal order of [`select`]), kept small: the frame
@@ -460,6 +463,7 @@ pub struct Selector {
     /// Scratch space (traversal stack, per-node indices).
     stack: Vec<(BlockId, u32)>,
     scratch: Vec<u32>,
+    spare: Spare,
     /// Importance and screen-space error per elevation node and importance
     /// per colour node, valid while the inputs besides the node are the
     /// same ([`MemoKey`]; they do not depend on the view direction).
@@ -467,6 +471,47 @@ pub struct Selector {
     memo_gen: u64,
     memo: Vec<Memo>,
     cmemo: Vec<(u64, f64)>,
+}
+
+/// Emptied buffers of the arrays replaced by the last splice, reused by the
+/// next one (no allocation, no fresh pages per frame).
+#[derive(Debug, Default)]
+struct Spare {
+    ids: Vec<BlockId>,
+    hot: Vec<Hot>,
+    cold: Vec<Cold>,
+    nb: Vec<[u32; 4]>,
+    hint: Vec<u32>,
+    witness: Vec<Option<DVec3>>,
+    memo: Vec<Memo>,
+    col: Vec<u32>,
+    cnodes: Vec<CNode>,
+    cmemo: Vec<(u64, f64)>,
+    children: Vec<[u32; 4]>,
+    flags: Vec<bool>,
+    cflags: Vec<bool>,
+    remap: Vec<u32>,
+    from_old: Vec<u32>,
+}
+
+impl Spare {
+    fn clear(&mut self) {
+        self.ids.clear();
+        self.hot.clear();
+        self.cold.clear();
+        self.nb.clear();
+        self.hint.clear();
+        self.witness.clear();
+        self.memo.clear();
+        self.col.clear();
+        self.cnodes.clear();
+        self.cmemo.clear();
+        self.children.clear();
+        self.flags.clear();
+        self.cflags.clear();
+        self.remap.clear();
+        self.from_old.clear();
+    }
 }
 
 /// What importance (Eq. 3.2–3.3) and the screen-space error depend on
@@ -490,7 +535,9 @@ impl MemoKey {
     }
 }
 
-/// Memoised per-node values (valid when `gen` is the selector's).
+/// Memoised per-node values (valid when `gen` is the selector's). For a
+/// split block `imp` is only kept where it may merge (else `NO_MERGE`); a
+/// block changing between leaf and split is re-read with a fresh entry.
 #[derive(Debug, Clone, Copy, Default)]
 struct Memo {
     gen: u64,
@@ -815,8 +862,13 @@ impl Selector {
         self.splices += 1;
         let old_n = self.ids.len();
         // Old nodes to re-read (elevation: with their subtrees).
-        let mut edirty = vec![false; old_n];
-        let mut cdirty = vec![false; self.cnodes.len()];
+        let mut sp = std::mem::take(&mut self.spare);
+        let mut edirty = std::mem::take(&mut sp.flags);
+        edirty.clear();
+        edirty.resize(old_n, false);
+        let mut cdirty = std::mem::take(&mut sp.cflags);
+        cdirty.clear();
+        cdirty.resize(self.cnodes.len(), false);
         for c in list.iter().filter(|c| c.kind != ChangeKind::Refined) {
             // A changed node missing from the cache lies under a node that
             // was a leaf and is changed too.
@@ -832,16 +884,18 @@ impl Selector {
                 }
             }
         }
-        let old_ids = std::mem::take(&mut self.ids);
-        let old_hot = std::mem::take(&mut self.hot);
-        let old_cold = std::mem::take(&mut self.cold);
-        let old_nb = std::mem::take(&mut self.nb);
-        let old_hint = std::mem::take(&mut self.hint);
-        let old_witness = std::mem::take(&mut self.witness);
-        let old_memo = std::mem::take(&mut self.memo);
-        let old_col = std::mem::take(&mut self.col_of_elev);
-        let old_cnodes = std::mem::take(&mut self.cnodes);
-        let old_cmemo = std::mem::take(&mut self.cmemo);
+        // The old arrays; the new ones reuse the buffers of the last splice.
+        let old_ids = std::mem::replace(&mut self.ids, std::mem::take(&mut sp.ids));
+        let old_hot = std::mem::replace(&mut self.hot, std::mem::take(&mut sp.hot));
+        let mut old_cold = std::mem::replace(&mut self.cold, std::mem::take(&mut sp.cold));
+        let old_nb = std::mem::replace(&mut self.nb, std::mem::take(&mut sp.nb));
+        let old_hint = std::mem::replace(&mut self.hint, std::mem::take(&mut sp.hint));
+        let old_witness = std::mem::replace(&mut self.witness, std::mem::take(&mut sp.witness));
+        let old_memo = std::mem::replace(&mut self.memo, std::mem::take(&mut sp.memo));
+        let old_col = std::mem::replace(&mut self.col_of_elev, std::mem::take(&mut sp.col));
+        let old_cnodes = std::mem::replace(&mut self.cnodes, std::mem::take(&mut sp.cnodes));
+        let old_cmemo = std::mem::replace(&mut self.cmemo, std::mem::take(&mut sp.cmemo));
+        let old_children = std::mem::replace(&mut self.children, std::mem::take(&mut sp.children));
         self.clear();
         self.hot.reserve(old_n + 64);
         self.cold.reserve(old_n + 64);
@@ -852,10 +906,13 @@ impl Selector {
         self.memo.reserve(old_n + 64);
         let et = tree.elevation();
         // Old index → new index (NONE: changed or removed), new → old.
-        let mut remap = vec![NONE; old_n];
-        let mut from_old: Vec<u32> = Vec::with_capacity(old_n + 64);
+        let mut remap = std::mem::take(&mut sp.remap);
+        remap.clear();
+        remap.resize(old_n, NONE);
+        let mut from_old = std::mem::take(&mut sp.from_old);
+        from_old.clear();
         let mut fresh: Vec<std::ops::Range<usize>> = Vec::new();
-        let mut cold_it = old_cold.into_iter();
+        let mut cold_it = old_cold.drain(..);
         let mut k = 0;
         while k < old_n {
             let Some(oc) = cold_it.next() else { break };
@@ -981,6 +1038,26 @@ impl Selector {
             }
         }
         self.bind_colours();
+        // Keep the old buffers (emptied) for the next splice.
+        sp = Spare {
+            ids: old_ids,
+            hot: old_hot,
+            cold: old_cold,
+            nb: old_nb,
+            hint: old_hint,
+            witness: old_witness,
+            memo: old_memo,
+            col: old_col,
+            cnodes: old_cnodes,
+            cmemo: old_cmemo,
+            children: old_children,
+            flags: edirty,
+            cflags: cdirty,
+            remap,
+            from_old,
+        };
+        sp.clear();
+        self.spare = sp;
     }
 
     /// Compare the cache with one rebuilt from scratch from `tree` (a
@@ -1107,14 +1184,18 @@ impl Selector {
                 },
             };
             self.state[i] = st;
-            let m = &mut self.memo[i];
-            if m.gen != gen {
-                m.gen = gen;
-                m.imp = importance(block_distance(eye, h.centre, h.radius), h.radius, ew, qf);
-                m.sse_lod = NOT_DRAWN;
-            }
-            let imp = m.imp;
             if h.split {
+                // Split blocks only need the importance where they may
+                // merge (visible or not).
+                let m = &mut self.memo[i];
+                if m.gen != gen {
+                    m.gen = gen;
+                    m.imp =
+                        merge_importance(block_distance(eye, h.centre, h.radius), h.radius, ew, qf)
+                            .unwrap_or(NO_MERGE);
+                    m.sse_lod = NOT_DRAWN;
+                }
+                let imp = m.imp;
                 if wants_merge(imp) && tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok() {
                     cx.out.ops.push(TreeOp {
                         kind: OpKind::Merge,
@@ -1125,9 +1206,20 @@ impl Selector {
                 }
                 continue;
             }
+            // Hidden leaves trigger nothing and are not drawn.
             if st == 0 {
                 continue;
             }
+            let m = &mut self.memo[i];
+            let mut dist = None;
+            if m.gen != gen {
+                let d = block_distance(eye, h.centre, h.radius);
+                m.gen = gen;
+                m.imp = importance(d, h.radius, ew, qf);
+                m.sse_lod = NOT_DRAWN;
+                dist = Some(d);
+            }
+            let imp = m.imp;
             let id = self.ids[i];
             let sel = selected_lod(imp);
             let lod = sel.max(h.lod);
@@ -1147,7 +1239,7 @@ impl Selector {
             if m.sse_lod != lod {
                 let c = &self.cold[i];
                 let error = if lod == 1 { c.err1 } else { c.err0 };
-                let dist = block_distance(eye, h.centre, h.radius);
+                let dist = dist.unwrap_or_else(|| block_distance(eye, h.centre, h.radius));
                 m.sse = sse.of(error, dist.max(view.near));
                 m.sse_lod = lod;
             }
@@ -1172,14 +1264,15 @@ impl Selector {
                 let h = &self.hot[c.elev as usize];
                 let visible = self.state[c.elev as usize] != 0;
                 let m = &mut self.cmemo[j];
-                if m.0 != gen {
-                    *m = (
-                        gen,
-                        importance(block_distance(eye, h.centre, h.radius), h.radius, cw, qf),
-                    );
-                }
-                let imp = m.1;
                 if c.split {
+                    if m.0 != gen {
+                        let d = block_distance(eye, h.centre, h.radius);
+                        *m = (
+                            gen,
+                            merge_importance(d, h.radius, cw, qf).unwrap_or(NO_MERGE),
+                        );
+                    }
+                    let imp = m.1;
                     if wants_merge(imp) && tree.can_merge(Tree::Colour, &c.id).is_ok() {
                         cx.out.ops.push(TreeOp {
                             kind: OpKind::Merge,
@@ -1190,11 +1283,21 @@ impl Selector {
                     }
                     continue;
                 }
-                let sel = selected_lod(imp);
-                self.cdrawn[j] = sel.max(c.lod);
+                // A hidden leaf triggers nothing, and its drawn LOD is
+                // never asked for: the colour bound to a drawn block is on
+                // its (visible) elevation path.
                 if !visible {
                     continue;
                 }
+                if m.0 != gen {
+                    *m = (
+                        gen,
+                        importance(block_distance(eye, h.centre, h.radius), h.radius, cw, qf),
+                    );
+                }
+                let imp = m.1;
+                let sel = selected_lod(imp);
+                self.cdrawn[j] = sel.max(c.lod);
                 if sel < c.lod {
                     cx.out.loads.push(LoadRequest {
                         tree: Tree::Colour,
