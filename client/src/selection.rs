@@ -356,6 +356,8 @@ struct Cold {
     /// A ball holding the node's bounding points and its parts' points.
     own: (DVec3, f64),
     bounds: Arc<BlockBounds>,
+    /// Whether the bounds have parts.
+    parts: bool,
     /// Geometric error at LOD 1 (own record) and LOD 0 (children's records).
     err1: f64,
     err0: f64,
@@ -447,7 +449,8 @@ pub struct Selector {
     nb: Vec<[u32; 4]>,
     col_of_elev: Vec<u32>,
     roots: [u32; 6],
-    /// Per node: the bounding point last found in front of the horizon.
+    /// Per node: the bounding point last found in front of the horizon
+    /// (blocks with parts: the part of the witness).
     hint: Vec<u32>,
     /// Per node: a bounding point that proved it visible last time.
     witness: Vec<Option<DVec3>>,
@@ -681,6 +684,7 @@ impl Selector {
             let cold = Cold {
                 own,
                 bounds: b.clone(),
+                parts: !b.parts.is_empty(),
                 err1: n.record.error as f64,
                 err0: child_error(n),
                 record: n.record,
@@ -915,31 +919,47 @@ impl Selector {
         let mut cold_it = old_cold.drain(..);
         let mut k = 0;
         while k < old_n {
+            // A run of kept nodes, copied in bulk. A kept node's parent is
+            // kept (a changed node's old subtree is skipped whole).
+            let run = edirty[k..].iter().position(|d| *d).map_or(old_n, |r| k + r);
+            if run > k {
+                let i0 = self.hot.len();
+                self.hot.extend_from_slice(&old_hot[k..run]);
+                self.ids.extend_from_slice(&old_ids[k..run]);
+                self.hint.extend_from_slice(&old_hint[k..run]);
+                self.witness.extend_from_slice(&old_witness[k..run]);
+                self.memo.extend_from_slice(&old_memo[k..run]);
+                self.cold.extend(cold_it.by_ref().take(run - k));
+                self.children.resize(self.hot.len(), [NONE; 4]);
+                from_old.extend(k as u32..run as u32);
+                for (o, i) in (k..run).zip(i0..) {
+                    remap[o] = i as u32;
+                    let id = self.ids[i];
+                    match self.hot[i].parent {
+                        NONE => self.roots[id.face.index() as usize] = i as u32,
+                        p => {
+                            let np = remap[p as usize];
+                            self.hot[i].parent = np;
+                            self.children[np as usize][id.child_index()] = i as u32;
+                        }
+                    }
+                }
+                k = run;
+                continue;
+            }
             let Some(oc) = cold_it.next() else { break };
             let id = old_ids[k];
-            let mut h = old_hot[k];
-            // A kept node's parent is kept (a changed parent's old subtree
-            // is skipped whole).
-            h.parent = match h.parent {
+            let parent = match old_hot[k].parent {
                 NONE => NONE,
                 p => remap[p as usize],
             };
-            if !edirty[k] {
-                let i = self.push_node(id, h, oc, old_memo[k]);
-                self.hint[i as usize] = old_hint[k];
-                self.witness[i as usize] = old_witness[k];
-                remap[k] = i;
-                from_old.push(k as u32);
-                k += 1;
-                continue;
-            }
             let mut end = k + 1;
             while end < old_n && old_ids[end].level > id.level {
                 cold_it.next();
                 end += 1;
             }
             let start = self.hot.len();
-            self.push_subtree(et, id, h.parent);
+            self.push_subtree(et, id, parent);
             let now = self.hot.len();
             from_old.resize(now, NONE);
             if now > start {
@@ -1366,21 +1386,56 @@ impl Selector {
 /// [`View::is_visible`] of a node: by its witness point when that
 /// still proves it visible, else by the full test (which finds a new
 /// witness when it can).
+///
+/// A block with parts (§4.2.1, coarse blocks) is visible when its ball
+/// meets the view cone and one part is visible; its witness is a bounding
+/// point of one part (`hint` is then that part's index): inside every
+/// frustum plane and in front of the horizon, it passes each test of that
+/// part but the cone test of the part's ball, which is redone.
 fn exact_visible(view: &View, c: &Cold, hint: &mut u32, witness: &mut Option<DVec3>) -> bool {
-    // A witness is only kept for blocks without parts, whose ball `own` is
-    // then the bounds' own ball.
     if let Some(p) = *witness {
-        if view.planet_in_view()
-            && view.sphere_in_cone(c.own.0, c.own.1)
+        // Without parts, `own` is the bounds' own ball (and the bounds are
+        // not read).
+        let proven = view.planet_in_view()
             && view.point_witnesses_visible(p)
-        {
+            && if !c.parts {
+                view.sphere_in_cone(c.own.0, c.own.1)
+            } else {
+                let b = &*c.bounds;
+                b.parts.get(*hint as usize).is_some_and(|part| {
+                    part.parts.is_empty()
+                        && view.sphere_in_cone(b.centre, b.sphere_radius)
+                        && view.sphere_in_cone(part.centre, part.sphere_radius)
+                })
+            };
+        if proven {
             return true;
         }
     }
-    let b = &*c.bounds;
-    let v = view.is_visible_hinted(b, hint);
     *witness = None;
-    if v && b.parts.is_empty() {
+    let b = &*c.bounds;
+    if !b.parts.is_empty() {
+        let v = view.is_visible(b);
+        if v {
+            let found = b.parts.iter().enumerate().find_map(|(k, part)| {
+                if !part.parts.is_empty() || !view.sphere_in_cone(part.centre, part.sphere_radius) {
+                    return None;
+                }
+                let p = part
+                    .points
+                    .iter()
+                    .find(|q| view.point_witnesses_visible(**q))?;
+                Some((k, *p))
+            });
+            if let Some((k, p)) = found {
+                *hint = k as u32;
+                *witness = Some(p);
+            }
+        }
+        return v;
+    }
+    let v = view.is_visible_hinted(b, hint);
+    if v {
         if let Some(&p) = b.points.get(*hint as usize) {
             if view.point_witnesses_visible(p) {
                 *witness = Some(p);
