@@ -1000,8 +1000,7 @@ impl Selector {
         }
         // Neighbours: kept where the old one is kept, else top-down.
         self.nb.reserve(n);
-        for i in 0..n {
-            let ok = from_old[i];
+        for (i, &ok) in from_old.iter().enumerate() {
             let nb = std::array::from_fn(|e| {
                 if ok != NONE {
                     let t = old_nb[ok as usize][e];
@@ -1018,7 +1017,7 @@ impl Selector {
         if let Some(ct) = tree.colour() {
             self.cnodes.reserve(old_cnodes.len() + 16);
             self.cmemo.reserve(old_cnodes.len() + 16);
-            for i in 0..n {
+            for (i, &ok) in from_old.iter().enumerate() {
                 let exists = match self.hot[i].parent {
                     NONE => true,
                     p => {
@@ -1029,7 +1028,6 @@ impl Selector {
                 if !exists {
                     continue;
                 }
-                let ok = from_old[i];
                 let oj = if ok != NONE {
                     old_col[ok as usize]
                 } else {
