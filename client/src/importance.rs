@@ -39,51 +39,75 @@ pub fn block_distance(eye: glam::DVec3, centre: glam::DVec3, radius: f64) -> f64
 
 /// Importance of a block (Eq. 3.2, 3.3), always finite, in `[−64, 64]`.
 pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -> f64 {
-    if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-        return IMPORTANCE_NEAR;
-    }
-    // +∞ and NaN mean "best quality"; −∞ (like any negative QF) means none,
-    // so importance stays monotone in QF over the whole extended line.
-    let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
-        qf.max(0.0).sqrt()
-    } else {
-        f64::MAX.sqrt()
-    };
-    let quality = q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance);
-    if quality.is_nan() {
-        return IMPORTANCE_NEAR;
-    }
-    if quality <= 0.0 {
-        return IMPORTANCE_FAR;
-    }
-    (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
+    Importance::new(qf).of(distance, block_radius, block_width)
 }
 
-/// [`importance`] of a split block where [`wants_merge`] may hold, `None`
-/// where it certainly does not, without the logarithm (the per-frame
-/// selection asks this of every split block, §3.6.4): `importance > 0`
-/// needs `quality < 1`, since `log2` (faithfully rounded, exact at 1) is
-/// `≥ 0` from 1 up. Where it returns `Some`, the value is [`importance`]'s.
+/// [`importance`] for one quality factor, with `sqrt(QF)` computed once (the
+/// same result for every block; the per-frame selection evaluates it for
+/// thousands of blocks).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Importance {
+    q1: f64,
+}
+
+impl Importance {
+    /// For quality factor `qf`.
+    pub fn new(qf: f64) -> Importance {
+        // +∞ and NaN mean "best quality"; −∞ (like any negative QF) means
+        // none, so importance stays monotone in QF over the whole extended
+        // line.
+        let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
+            qf.max(0.0).sqrt()
+        } else {
+            f64::MAX.sqrt()
+        };
+        Importance { q1 }
+    }
+
+    fn quality(&self, distance: f64, block_radius: f64, block_width: f64) -> f64 {
+        self.q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance)
+    }
+
+    /// [`importance`]`(distance, block_radius, block_width, qf)`.
+    pub fn of(&self, distance: f64, block_radius: f64, block_width: f64) -> f64 {
+        if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return IMPORTANCE_NEAR;
+        }
+        let quality = self.quality(distance, block_radius, block_width);
+        if quality.is_nan() {
+            return IMPORTANCE_NEAR;
+        }
+        if quality <= 0.0 {
+            return IMPORTANCE_FAR;
+        }
+        (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
+    }
+
+    /// [`importance`] of a split block where [`wants_merge`] may hold,
+    /// `None` where it certainly does not, without the logarithm (the
+    /// per-frame selection asks this of every split block, §3.6.4):
+    /// `importance > 0` needs `quality < 1`, since `log2` (faithfully
+    /// rounded, exact at 1) is `≥ 0` from 1 up. Where it returns `Some`, the
+    /// value is [`Importance::of`]'s.
+    pub fn if_may_merge(&self, distance: f64, block_radius: f64, block_width: f64) -> Option<f64> {
+        if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        if self.quality(distance, block_radius, block_width) >= 1.0 {
+            return None;
+        }
+        Some(self.of(distance, block_radius, block_width))
+    }
+}
+
+/// [`Importance::if_may_merge`] for quality factor `qf`.
 pub fn merge_importance(
     distance: f64,
     block_radius: f64,
     block_width: f64,
     qf: f64,
 ) -> Option<f64> {
-    if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-        return None;
-    }
-    // As in `importance`.
-    let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
-        qf.max(0.0).sqrt()
-    } else {
-        f64::MAX.sqrt()
-    };
-    let quality = q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance);
-    if quality >= 1.0 {
-        return None;
-    }
-    Some(importance(distance, block_radius, block_width, qf))
+    Importance::new(qf).if_may_merge(distance, block_radius, block_width)
 }
 
 /// The LOD to render: `ceil(importance)` clamped to `[0, 1]`

@@ -25,8 +25,8 @@
 //! when it is positive; split (finer) or invisible neighbours give `None`.
 
 use crate::importance::{
-    block_distance, importance, merge_importance, refine_importance, screen_space_error,
-    selected_lod, split_importance, wants_merge, wants_split, ScreenError,
+    block_distance, importance, refine_importance, screen_space_error, selected_lod,
+    split_importance, wants_merge, wants_split, Importance, ScreenError,
 };
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{
@@ -328,7 +328,8 @@ const NONE: u32 = u32::MAX;
 /// Not drawn (per-frame LOD sentinel).
 const NOT_DRAWN: u8 = u8::MAX;
 /// Memoised importance of a split block that does not want to merge
-/// ([`merge_importance`] is `None`; `wants_merge` is false for NaN).
+/// ([`Importance::if_may_merge`] is `None`; `wants_merge` is false for
+/// NaN).
 const NO_MERGE: f64 = f64::NAN;
 
 /// Per-frame inputs of one elevation node of the cached flat tree
@@ -421,9 +422,11 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 ///   per-node inputs of importance (§3.6.2, §4.2.4), errors, split
 ///   readiness and records; the neighbours of every node (Alg. 4.1,
 ///   top-down from the parent's) and the colour binding of every leaf
-///   (§4.4.1) follow from the flat links. The arrays are rebuilt when nodes
-///   are added or removed and patched when blocks are refined
-///   ([`PartialTree::changes_since`]); a rebuild reads each tree node once;
+///   (§4.4.1) follow from the flat links. The tree's change log
+///   ([`PartialTree::changes_since`]) patches refined blocks and splices
+///   split and merged ones in (re-reading only the changed subtrees); the
+///   arrays are rebuilt (each tree node read once) only for another tree
+///   or when the log no longer reaches back far enough;
 /// - visibility (§3.6.1, §4.2.1, §4.5.4) is hierarchical: a ball holding a
 ///   whole subtree's bounding points decides the subtree at once when it
 ///   lies inside the frustum and in front of the horizon (all visible) or
@@ -434,7 +437,8 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 /// - importance (Eq. 3.2–3.3) and the screen-space error depend on the eye,
 ///   not on the view direction: they are kept per node while the eye,
 ///   quality factor, near distance and viewport stay the same (a camera
-///   turning on the spot recomputes only visibility).
+///   turning on the spot recomputes only visibility); hidden leaves skip
+///   them, and split blocks take the logarithm only where they may merge.
 #[derive(Debug, Default)]
 pub struct Selector {
     stamp: Option<TreeStamp>,
@@ -1161,6 +1165,7 @@ impl Selector {
         let ew = et.width as f64;
         let eye = view.camera.eye;
         let sse = ScreenError::new(view.camera.viewport_height_px, view.camera.fov_y);
+        let imp_of = Importance::new(qf);
         // Generation 0 is never valid, so fresh entries are recomputed.
         let key = MemoKey::new(view, qf);
         if self.memo_key != Some(key) || self.memo_gen == 0 {
@@ -1208,9 +1213,8 @@ impl Selector {
                 let m = &mut self.memo[i];
                 if m.gen != gen {
                     m.gen = gen;
-                    m.imp =
-                        merge_importance(block_distance(eye, h.centre, h.radius), h.radius, ew, qf)
-                            .unwrap_or(NO_MERGE);
+                    let d = block_distance(eye, h.centre, h.radius);
+                    m.imp = imp_of.if_may_merge(d, h.radius, ew).unwrap_or(NO_MERGE);
                     m.sse_lod = NOT_DRAWN;
                 }
                 let imp = m.imp;
@@ -1233,7 +1237,7 @@ impl Selector {
             if m.gen != gen {
                 let d = block_distance(eye, h.centre, h.radius);
                 m.gen = gen;
-                m.imp = importance(d, h.radius, ew, qf);
+                m.imp = imp_of.of(d, h.radius, ew);
                 m.sse_lod = NOT_DRAWN;
                 dist = Some(d);
             }
@@ -1287,7 +1291,7 @@ impl Selector {
                         let d = block_distance(eye, h.centre, h.radius);
                         *m = (
                             gen,
-                            merge_importance(d, h.radius, cw, qf).unwrap_or(NO_MERGE),
+                            imp_of.if_may_merge(d, h.radius, cw).unwrap_or(NO_MERGE),
                         );
                     }
                     let imp = m.1;
@@ -1310,7 +1314,7 @@ impl Selector {
                 if m.0 != gen {
                     *m = (
                         gen,
-                        importance(block_distance(eye, h.centre, h.radius), h.radius, cw, qf),
+                        imp_of.of(block_distance(eye, h.centre, h.radius), h.radius, cw),
                     );
                 }
                 let imp = m.1;
