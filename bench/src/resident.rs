@@ -35,6 +35,10 @@ pub struct ResidentArgs {
     /// Frames timed per camera.
     #[arg(long, default_value_t = 300)]
     pub frames: usize,
+    /// Time only the cameras whose name contains this (e.g. `moving`, for
+    /// profiling one case).
+    #[arg(long)]
+    pub only: Option<String>,
 }
 
 fn stats(v: &mut [f64]) -> (f64, f64, f64, f64) {
@@ -136,6 +140,9 @@ pub fn run(a: ResidentArgs) -> Result<()> {
         ("turning camera (0.5°/frame)", 0.5, 0.0),
         ("moving camera (0.01° lat/frame)", 0.0, 0.01),
     ] {
+        if a.only.as_ref().is_some_and(|o| !name.contains(o.as_str())) {
+            continue;
+        }
         let mut v = Vec::with_capacity(a.frames);
         let mut wall = Vec::with_capacity(a.frames);
         let rebuilds = client.selector().rebuilds();

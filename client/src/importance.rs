@@ -39,24 +39,75 @@ pub fn block_distance(eye: glam::DVec3, centre: glam::DVec3, radius: f64) -> f64
 
 /// Importance of a block (Eq. 3.2, 3.3), always finite, in `[−64, 64]`.
 pub fn importance(distance: f64, block_radius: f64, block_width: f64, qf: f64) -> f64 {
-    if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-        return IMPORTANCE_NEAR;
+    Importance::new(qf).of(distance, block_radius, block_width)
+}
+
+/// [`importance`] for one quality factor, with `sqrt(QF)` computed once (the
+/// same result for every block; the per-frame selection evaluates it for
+/// thousands of blocks).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Importance {
+    q1: f64,
+}
+
+impl Importance {
+    /// For quality factor `qf`.
+    pub fn new(qf: f64) -> Importance {
+        // +∞ and NaN mean "best quality"; −∞ (like any negative QF) means
+        // none, so importance stays monotone in QF over the whole extended
+        // line.
+        let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
+            qf.max(0.0).sqrt()
+        } else {
+            f64::MAX.sqrt()
+        };
+        Importance { q1 }
     }
-    // +∞ and NaN mean "best quality"; −∞ (like any negative QF) means none,
-    // so importance stays monotone in QF over the whole extended line.
-    let q1 = if qf.is_finite() || qf == f64::NEG_INFINITY {
-        qf.max(0.0).sqrt()
-    } else {
-        f64::MAX.sqrt()
-    };
-    let quality = q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance);
-    if quality.is_nan() {
-        return IMPORTANCE_NEAR;
+
+    fn quality(&self, distance: f64, block_radius: f64, block_width: f64) -> f64 {
+        self.q1 * block_radius.max(0.0) / (block_width.max(1.0) * distance)
     }
-    if quality <= 0.0 {
-        return IMPORTANCE_FAR;
+
+    /// [`importance`]`(distance, block_radius, block_width, qf)`.
+    pub fn of(&self, distance: f64, block_radius: f64, block_width: f64) -> f64 {
+        if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return IMPORTANCE_NEAR;
+        }
+        let quality = self.quality(distance, block_radius, block_width);
+        if quality.is_nan() {
+            return IMPORTANCE_NEAR;
+        }
+        if quality <= 0.0 {
+            return IMPORTANCE_FAR;
+        }
+        (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
     }
-    (-quality.log2()).clamp(IMPORTANCE_NEAR, IMPORTANCE_FAR)
+
+    /// [`importance`] of a split block where [`wants_merge`] may hold,
+    /// `None` where it certainly does not, without the logarithm (the
+    /// per-frame selection asks this of every split block, §3.6.4):
+    /// `importance > 0` needs `quality < 1`, since `log2` (faithfully
+    /// rounded, exact at 1) is `≥ 0` from 1 up. Where it returns `Some`, the
+    /// value is [`Importance::of`]'s.
+    pub fn if_may_merge(&self, distance: f64, block_radius: f64, block_width: f64) -> Option<f64> {
+        if distance.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        if self.quality(distance, block_radius, block_width) >= 1.0 {
+            return None;
+        }
+        Some(self.of(distance, block_radius, block_width))
+    }
+}
+
+/// [`Importance::if_may_merge`] for quality factor `qf`.
+pub fn merge_importance(
+    distance: f64,
+    block_radius: f64,
+    block_width: f64,
+    qf: f64,
+) -> Option<f64> {
+    Importance::new(qf).if_may_merge(distance, block_radius, block_width)
 }
 
 /// The LOD to render: `ceil(importance)` clamped to `[0, 1]`
@@ -146,6 +197,28 @@ mod tests {
             prop_assert!(a.is_finite() && b.is_finite());
             if d1 <= d2 { prop_assert!(a <= b); }
             prop_assert!(screen_space_error(3.0, d1, 1080.0, 1.0).is_finite());
+        }
+    }
+
+    proptest! {
+        /// `merge_importance` is `importance` wherever a merge may be
+        /// wanted, and `None` only where it is not (also around quality 1).
+        #[test]
+        fn merge_importance_agrees(d in -1e7f64..1e13, r in 0.0f64..1e7, w in prop_oneof![Just(8.0), Just(64.0)], qf in prop_oneof![Just(0.0), 0.0f64..1e12, Just(f64::INFINITY)], ulps in -4i64..4) {
+            // Also put the quality within a few ulps of 1.
+            let q1 = qf.sqrt();
+            let d1 = if q1 > 0.0 && q1.is_finite() && r > 0.0 {
+                f64::from_bits(((q1 * r / w).to_bits() as i64 + ulps) as u64)
+            } else {
+                d
+            };
+            for d in [d, d1] {
+                let imp = importance(d, r, w, qf);
+                match merge_importance(d, r, w, qf) {
+                    Some(m) => prop_assert_eq!(m.to_bits(), imp.to_bits()),
+                    None => prop_assert!(!wants_merge(imp), "{} {} {} {}", d, r, w, qf),
+                }
+            }
         }
     }
 

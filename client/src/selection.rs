@@ -26,10 +26,12 @@
 
 use crate::importance::{
     block_distance, importance, refine_importance, screen_space_error, selected_lod,
-    split_importance, wants_merge, wants_split, ScreenError,
+    split_importance, wants_merge, wants_split, Importance, ScreenError,
 };
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
-use crate::tree::{Blocked, FastMap, Node, PartialTree, TreeChanges, TreeStamp};
+use crate::tree::{
+    Blocked, ChangeKind, FastMap, LinkedTree, Node, PartialTree, TreeChange, TreeChanges, TreeStamp,
+};
 use crate::visibility::{BlockBounds, View};
 use glam::DVec3;
 use planet_core::format::{ChildRef, Tree};
@@ -325,6 +327,10 @@ impl Ctx<'_> {
 const NONE: u32 = u32::MAX;
 /// Not drawn (per-frame LOD sentinel).
 const NOT_DRAWN: u8 = u8::MAX;
+/// Memoised importance of a split block that does not want to merge
+/// ([`Importance::if_may_merge`] is `None`; `wants_merge` is false for
+/// NaN).
+const NO_MERGE: f64 = f64::NAN;
 
 /// Per-frame inputs of one elevation node of the cached flat tree
 /// (pre-order, the traversal order of [`select`]), kept small: the frame
@@ -351,6 +357,8 @@ struct Cold {
     /// A ball holding the node's bounding points and its parts' points.
     own: (DVec3, f64),
     bounds: Arc<BlockBounds>,
+    /// Whether the bounds have parts.
+    parts: bool,
     /// Geometric error at LOD 1 (own record) and LOD 0 (children's records).
     err1: f64,
     err0: f64,
@@ -414,9 +422,11 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 ///   per-node inputs of importance (§3.6.2, §4.2.4), errors, split
 ///   readiness and records; the neighbours of every node (Alg. 4.1,
 ///   top-down from the parent's) and the colour binding of every leaf
-///   (§4.4.1) follow from the flat links. The arrays are rebuilt when nodes
-///   are added or removed and patched when blocks are refined
-///   ([`PartialTree::changes_since`]); a rebuild reads each tree node once;
+///   (§4.4.1) follow from the flat links. The tree's change log
+///   ([`PartialTree::changes_since`]) patches refined blocks and splices
+///   split and merged ones in (re-reading only the changed subtrees); the
+///   arrays are rebuilt (each tree node read once) only for another tree
+///   or when the log no longer reaches back far enough;
 /// - visibility (§3.6.1, §4.2.1, §4.5.4) is hierarchical: a ball holding a
 ///   whole subtree's bounding points decides the subtree at once when it
 ///   lies inside the frustum and in front of the horizon (all visible) or
@@ -427,7 +437,8 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 /// - importance (Eq. 3.2–3.3) and the screen-space error depend on the eye,
 ///   not on the view direction: they are kept per node while the eye,
 ///   quality factor, near distance and viewport stay the same (a camera
-///   turning on the spot recomputes only visibility).
+///   turning on the spot recomputes only visibility); hidden leaves skip
+///   them, and split blocks take the logarithm only where they may merge.
 #[derive(Debug, Default)]
 pub struct Selector {
     stamp: Option<TreeStamp>,
@@ -442,7 +453,8 @@ pub struct Selector {
     nb: Vec<[u32; 4]>,
     col_of_elev: Vec<u32>,
     roots: [u32; 6],
-    /// Per node: the bounding point last found in front of the horizon.
+    /// Per node: the bounding point last found in front of the horizon
+    /// (blocks with parts: the part of the witness).
     hint: Vec<u32>,
     /// Per node: a bounding point that proved it visible last time.
     witness: Vec<Option<DVec3>>,
@@ -454,6 +466,11 @@ pub struct Selector {
     draw_idx: Vec<u32>,
     last_draw: usize,
     rebuilds: u64,
+    splices: u64,
+    /// Scratch space (traversal stack, per-node indices).
+    stack: Vec<(BlockId, u32)>,
+    scratch: Vec<u32>,
+    spare: Spare,
     /// Importance and screen-space error per elevation node and importance
     /// per colour node, valid while the inputs besides the node are the
     /// same ([`MemoKey`]; they do not depend on the view direction).
@@ -461,6 +478,47 @@ pub struct Selector {
     memo_gen: u64,
     memo: Vec<Memo>,
     cmemo: Vec<(u64, f64)>,
+}
+
+/// Emptied buffers of the arrays replaced by the last splice, reused by the
+/// next one (no allocation, no fresh pages per frame).
+#[derive(Debug, Default)]
+struct Spare {
+    ids: Vec<BlockId>,
+    hot: Vec<Hot>,
+    cold: Vec<Cold>,
+    nb: Vec<[u32; 4]>,
+    hint: Vec<u32>,
+    witness: Vec<Option<DVec3>>,
+    memo: Vec<Memo>,
+    col: Vec<u32>,
+    cnodes: Vec<CNode>,
+    cmemo: Vec<(u64, f64)>,
+    children: Vec<[u32; 4]>,
+    flags: Vec<bool>,
+    cflags: Vec<bool>,
+    remap: Vec<u32>,
+    from_old: Vec<u32>,
+}
+
+impl Spare {
+    fn clear(&mut self) {
+        self.ids.clear();
+        self.hot.clear();
+        self.cold.clear();
+        self.nb.clear();
+        self.hint.clear();
+        self.witness.clear();
+        self.memo.clear();
+        self.col.clear();
+        self.cnodes.clear();
+        self.cmemo.clear();
+        self.children.clear();
+        self.flags.clear();
+        self.cflags.clear();
+        self.remap.clear();
+        self.from_old.clear();
+    }
 }
 
 /// What importance (Eq. 3.2–3.3) and the screen-space error depend on
@@ -484,7 +542,9 @@ impl MemoKey {
     }
 }
 
-/// Memoised per-node values (valid when `gen` is the selector's).
+/// Memoised per-node values (valid when `gen` is the selector's). For a
+/// split block `imp` is only kept where it may merge (else `NO_MERGE`); a
+/// block changing between leaf and split is re-read with a fresh entry.
 #[derive(Debug, Clone, Copy, Default)]
 struct Memo {
     gen: u64,
@@ -505,6 +565,12 @@ impl Selector {
         self.rebuilds
     }
 
+    /// Times splits and merges were applied to the cache without a rebuild
+    /// (statistics and tests).
+    pub fn splices(&self) -> u64 {
+        self.splices
+    }
+
     fn update(&mut self, tree: &PartialTree) {
         let changes = match &self.stamp {
             None => TreeChanges::Structure,
@@ -512,9 +578,14 @@ impl Selector {
         };
         match changes {
             TreeChanges::Structure => self.rebuild(tree),
-            TreeChanges::Refined(list) => {
-                for (kind, id) in list {
-                    self.patch(tree, *kind, id);
+            TreeChanges::Log(list) => {
+                if list.iter().any(|c| c.kind != ChangeKind::Refined) {
+                    self.splice(tree, list);
+                }
+                // A patch reads the node's current state, so refines logged
+                // before a split or merge are applied after the splice.
+                for c in list.iter().filter(|c| c.kind == ChangeKind::Refined) {
+                    self.patch(tree, c.tree, &c.block);
                 }
             }
         }
@@ -574,6 +645,138 @@ impl Selector {
         }
     }
 
+    /// Append an elevation node (pre-order: its parent is already in) and
+    /// link it to its parent (or as its face's root).
+    fn push_node(&mut self, id: BlockId, hot: Hot, cold: Cold, memo: Memo) -> u32 {
+        let i = self.hot.len() as u32;
+        match hot.parent {
+            NONE => self.roots[id.face.index() as usize] = i,
+            p => self.children[p as usize][id.child_index()] = i,
+        }
+        self.hot.push(hot);
+        self.cold.push(cold);
+        self.ids.push(id);
+        self.children.push([NONE; 4]);
+        self.hint.push(0);
+        self.witness.push(None);
+        self.memo.push(memo);
+        i
+    }
+
+    /// Append the elevation subtree of `root` read from the tree
+    /// (pre-order, one hash lookup per node), under node `parent`, with
+    /// every subtree ball set to the node's own ball.
+    fn push_subtree(&mut self, et: &LinkedTree, root: BlockId, parent: u32) {
+        let mut stack = std::mem::take(&mut self.stack);
+        stack.clear();
+        stack.push((root, parent));
+        while let Some((id, parent)) = stack.pop() {
+            let Some(n) = et.get(&id) else { continue };
+            let Some(b) = n.bounds.as_ref() else { continue };
+            let own = b.parts.iter().fold((b.centre, b.sphere_radius), |s, p| {
+                ball_union(s, (p.centre, p.sphere_radius))
+            });
+            let hot = Hot {
+                sub: own,
+                centre: b.centre,
+                radius: b.radius,
+                parent,
+                split: n.split,
+                lod: n.lod,
+                splittable: n.can_split_data().is_ok(),
+            };
+            let cold = Cold {
+                own,
+                bounds: b.clone(),
+                parts: !b.parts.is_empty(),
+                err1: n.record.error as f64,
+                err0: child_error(n),
+                record: n.record,
+                colour: Binding::None,
+            };
+            let i = self.push_node(id, hot, cold, Memo::default());
+            if n.split {
+                stack.extend(id.children().map(|c| (c, i)));
+            }
+        }
+        self.stack = stack;
+    }
+
+    /// Subtree balls of the nodes `range` (a subtree in pre-order whose
+    /// balls are the nodes' own), children (later in pre-order) first.
+    fn union_subtree_balls(&mut self, range: std::ops::Range<usize>) {
+        for i in (range.start + 1..range.end).rev() {
+            let (p, s) = (self.hot[i].parent, self.hot[i].sub);
+            if p != NONE {
+                let h = &mut self.hot[p as usize];
+                h.sub = ball_union(h.sub, s);
+            }
+        }
+    }
+
+    /// The deepest node covering the same-level neighbour of node `i`
+    /// across `Edge::ALL[k]` (Alg. 4.1 top-down): it is `i`'s sibling or
+    /// found from its parent's neighbour (`self.nb` holds the parent's).
+    fn neighbour_of(&self, i: usize, k: usize) -> u32 {
+        let id = self.ids[i];
+        let p = self.hot[i].parent;
+        let e = Edge::ALL[k];
+        let same = id.neighbour(e).0;
+        let start = match same.parent() {
+            Some(sp) if p != NONE && sp == self.ids[p as usize] => p,
+            Some(sp) if p != NONE && self.ids[p as usize].neighbour(e).0 == sp => {
+                self.nb[p as usize][k]
+            }
+            _ => self.roots[same.face.index() as usize],
+        };
+        self.covering_from(start, &same)
+    }
+
+    /// Colour bindings: the deepest colour node on each leaf's elevation
+    /// path (every colour node has its elevation node, §4.4.1).
+    fn bind_colours(&mut self) {
+        let n = self.hot.len();
+        let mut cov = std::mem::take(&mut self.scratch);
+        cov.clear();
+        cov.resize(n, NONE);
+        for i in 0..n {
+            let j = self.col_of_elev[i];
+            cov[i] = if j != NONE {
+                j
+            } else {
+                match self.hot[i].parent {
+                    NONE => NONE,
+                    p => cov[p as usize],
+                }
+            };
+            self.cold[i].colour = if self.hot[i].split {
+                Binding::None
+            } else {
+                match cov[i] {
+                    NONE => Binding::None,
+                    j if self.cnodes[j as usize].split => Binding::Tree(self.cnodes[j as usize].id),
+                    j => Binding::Node(j),
+                }
+            };
+        }
+        self.scratch = cov;
+    }
+
+    fn clear(&mut self) {
+        self.hot.clear();
+        self.cold.clear();
+        self.ids.clear();
+        self.children.clear();
+        self.nb.clear();
+        self.col_of_elev.clear();
+        self.hint.clear();
+        self.witness.clear();
+        self.memo.clear();
+        self.cmemo.clear();
+        self.cnodes.clear();
+        self.roots = [NONE; 6];
+    }
+
     /// Flatten the trees (pre-order, as [`select`] traverses them). One
     /// hash lookup per node (the tree's own map); neighbours, colour nodes
     /// and bindings follow from the flat parent/children links.
@@ -583,61 +786,10 @@ impl Selector {
         let old_hint = std::mem::take(&mut self.hint);
         let old_witness = std::mem::take(&mut self.witness);
         let old_cold = std::mem::take(&mut self.cold);
-        self.hot.clear();
-        self.children.clear();
-        self.nb.clear();
-        self.col_of_elev.clear();
-        self.memo.clear();
-        self.cmemo.clear();
-        self.cnodes.clear();
-        self.roots = [NONE; 6];
+        self.clear();
         let et = tree.elevation();
-        let mut stack: Vec<(BlockId, u32)> = Vec::with_capacity(64);
         for f in Face::ALL {
-            stack.push((BlockId::root(f), NONE));
-            while let Some((id, parent)) = stack.pop() {
-                let Some(n) = et.get(&id) else { continue };
-                let Some(b) = n.bounds.as_ref() else { continue };
-                let i = self.hot.len() as u32;
-                if parent == NONE {
-                    self.roots[f.index() as usize] = i;
-                } else {
-                    self.children[parent as usize][id.child_index()] = i;
-                }
-                let own = b.parts.iter().fold((b.centre, b.sphere_radius), |s, p| {
-                    ball_union(s, (p.centre, p.sphere_radius))
-                });
-                self.hot.push(Hot {
-                    sub: own,
-                    centre: b.centre,
-                    radius: b.radius,
-                    parent,
-                    split: n.split,
-                    lod: n.lod,
-                    splittable: n.can_split_data().is_ok(),
-                });
-                self.cold.push(Cold {
-                    own,
-                    bounds: b.clone(),
-                    err1: n.record.error as f64,
-                    err0: child_error(n),
-                    record: n.record,
-                    colour: Binding::None,
-                });
-                self.ids.push(id);
-                self.children.push([NONE; 4]);
-                self.hint.push(0);
-                self.witness.push(None);
-                self.memo.push(Memo {
-                    gen: 0,
-                    imp: 0.0,
-                    sse_lod: NOT_DRAWN,
-                    sse: 0.0,
-                });
-                if n.split {
-                    stack.extend(id.children().map(|c| (c, i)));
-                }
-            }
+            self.push_subtree(et, BlockId::root(f), NONE);
         }
         let n = self.hot.len();
         // Keep the hints and witnesses of nodes that stay (same bounds).
@@ -652,36 +804,15 @@ impl Selector {
                 }
             }
         }
-        // Subtree balls, children (later in pre-order) first.
-        for i in (1..n).rev() {
-            let (p, s) = (self.hot[i].parent, self.hot[i].sub);
-            if p != NONE {
-                let h = &mut self.hot[p as usize];
-                h.sub = ball_union(h.sub, s);
-            }
-        }
-        // Neighbours (Alg. 4.1 top-down): the same-level neighbour of a
-        // child is its sibling or a child of its parent's neighbour.
+        self.union_subtree_balls(0..n);
         for i in 0..n {
-            let id = self.ids[i];
-            let p = self.hot[i].parent;
-            let mut nb = [NONE; 4];
-            for (k, e) in Edge::ALL.iter().enumerate() {
-                let same = id.neighbour(*e).0;
-                let start = match same.parent() {
-                    Some(sp) if p != NONE && sp == self.ids[p as usize] => p,
-                    Some(sp) if p != NONE && self.ids[p as usize].neighbour(*e).0 == sp => {
-                        self.nb[p as usize][k]
-                    }
-                    _ => self.roots[same.face.index() as usize],
-                };
-                nb[k] = self.covering_from(start, &same);
-            }
+            let nb = std::array::from_fn(|k| self.neighbour_of(i, k));
             self.nb.push(nb);
         }
         // Colour nodes, with their elevation nodes (same ids).
         self.col_of_elev.resize(n, NONE);
         if let Some(ct) = tree.colour() {
+            let mut stack: Vec<(BlockId, u32)> = Vec::with_capacity(64);
             for f in Face::ALL {
                 stack.push((BlockId::root(f), self.roots[f.index() as usize]));
                 while let Some((id, elev)) = stack.pop() {
@@ -714,30 +845,309 @@ impl Selector {
                     }
                 }
             }
-            // Colour bindings: the deepest colour node on each leaf's
-            // elevation path (every colour node has its elevation node).
-            let mut cov = vec![NONE; n];
-            for i in 0..n {
-                let j = self.col_of_elev[i];
-                cov[i] = if j != NONE {
-                    j
-                } else {
-                    match self.hot[i].parent {
-                        NONE => NONE,
-                        p => cov[p as usize],
+        }
+        self.bind_colours();
+    }
+
+    /// Apply logged splits and merges to the flat arrays (thesis §3.4.1)
+    /// without reading the unchanged nodes from the tree: one pass over the
+    /// old arrays in pre-order copies every node outside a changed subtree
+    /// (with its bounds, witnesses and memoised values) and re-reads each
+    /// changed node's subtree from the tree in its place; then
+    ///
+    /// - subtree balls are recomputed in the re-read subtrees and up their
+    ///   ancestor chains;
+    /// - a kept node keeps its neighbours (Alg. 4.1) unless one of them was
+    ///   changed or removed: the neighbour across an edge is the deepest
+    ///   node covering the same-level neighbour, which only a split or merge
+    ///   on its path can change, and a split or merge below it needs it to
+    ///   be split and at least the same level, so that it still covers;
+    /// - colour nodes (§4.4.1) are copied in elevation pre-order, which is
+    ///   the colour tree's pre-order (a colour node exists exactly under a
+    ///   split colour parent), re-read only where the colour tree changed;
+    ///   bindings are recomputed from the flat links.
+    fn splice(&mut self, tree: &PartialTree, list: &[TreeChange]) {
+        self.splices += 1;
+        let old_n = self.ids.len();
+        // Old nodes to re-read (elevation: with their subtrees).
+        let mut sp = std::mem::take(&mut self.spare);
+        let mut edirty = std::mem::take(&mut sp.flags);
+        edirty.clear();
+        edirty.resize(old_n, false);
+        let mut cdirty = std::mem::take(&mut sp.cflags);
+        cdirty.clear();
+        cdirty.resize(self.cnodes.len(), false);
+        for c in list.iter().filter(|c| c.kind != ChangeKind::Refined) {
+            // A changed node missing from the cache lies under a node that
+            // was a leaf and is changed too.
+            let Some(k) = self.find(&c.block) else {
+                continue;
+            };
+            match c.tree {
+                Tree::Elevation => edirty[k] = true,
+                Tree::Colour => {
+                    if let Some(j) = self.col_of_elev.get(k).filter(|j| **j != NONE) {
+                        cdirty[*j as usize] = true;
                     }
-                };
-                if !self.hot[i].split {
-                    self.cold[i].colour = match cov[i] {
-                        NONE => Binding::None,
-                        j if self.cnodes[j as usize].split => {
-                            Binding::Tree(self.cnodes[j as usize].id)
-                        }
-                        j => Binding::Node(j),
-                    };
                 }
             }
         }
+        // The old arrays; the new ones reuse the buffers of the last splice.
+        let old_ids = std::mem::replace(&mut self.ids, std::mem::take(&mut sp.ids));
+        let old_hot = std::mem::replace(&mut self.hot, std::mem::take(&mut sp.hot));
+        let mut old_cold = std::mem::replace(&mut self.cold, std::mem::take(&mut sp.cold));
+        let old_nb = std::mem::replace(&mut self.nb, std::mem::take(&mut sp.nb));
+        let old_hint = std::mem::replace(&mut self.hint, std::mem::take(&mut sp.hint));
+        let old_witness = std::mem::replace(&mut self.witness, std::mem::take(&mut sp.witness));
+        let old_memo = std::mem::replace(&mut self.memo, std::mem::take(&mut sp.memo));
+        let old_col = std::mem::replace(&mut self.col_of_elev, std::mem::take(&mut sp.col));
+        let old_cnodes = std::mem::replace(&mut self.cnodes, std::mem::take(&mut sp.cnodes));
+        let old_cmemo = std::mem::replace(&mut self.cmemo, std::mem::take(&mut sp.cmemo));
+        let old_children = std::mem::replace(&mut self.children, std::mem::take(&mut sp.children));
+        self.clear();
+        self.hot.reserve(old_n + 64);
+        self.cold.reserve(old_n + 64);
+        self.ids.reserve(old_n + 64);
+        self.children.reserve(old_n + 64);
+        self.hint.reserve(old_n + 64);
+        self.witness.reserve(old_n + 64);
+        self.memo.reserve(old_n + 64);
+        let et = tree.elevation();
+        // Old index → new index (NONE: changed or removed), new → old.
+        let mut remap = std::mem::take(&mut sp.remap);
+        remap.clear();
+        remap.resize(old_n, NONE);
+        let mut from_old = std::mem::take(&mut sp.from_old);
+        from_old.clear();
+        let mut fresh: Vec<std::ops::Range<usize>> = Vec::new();
+        let mut cold_it = old_cold.drain(..);
+        let mut k = 0;
+        while k < old_n {
+            // A run of kept nodes, copied in bulk. A kept node's parent is
+            // kept (a changed node's old subtree is skipped whole).
+            let run = edirty[k..].iter().position(|d| *d).map_or(old_n, |r| k + r);
+            if run > k {
+                let i0 = self.hot.len();
+                self.hot.extend_from_slice(&old_hot[k..run]);
+                self.ids.extend_from_slice(&old_ids[k..run]);
+                self.hint.extend_from_slice(&old_hint[k..run]);
+                self.witness.extend_from_slice(&old_witness[k..run]);
+                self.memo.extend_from_slice(&old_memo[k..run]);
+                self.cold.extend(cold_it.by_ref().take(run - k));
+                self.children.resize(self.hot.len(), [NONE; 4]);
+                from_old.extend(k as u32..run as u32);
+                for (o, i) in (k..run).zip(i0..) {
+                    remap[o] = i as u32;
+                    let id = self.ids[i];
+                    match self.hot[i].parent {
+                        NONE => self.roots[id.face.index() as usize] = i as u32,
+                        p => {
+                            let np = remap[p as usize];
+                            self.hot[i].parent = np;
+                            self.children[np as usize][id.child_index()] = i as u32;
+                        }
+                    }
+                }
+                k = run;
+                continue;
+            }
+            let Some(oc) = cold_it.next() else { break };
+            let id = old_ids[k];
+            let parent = match old_hot[k].parent {
+                NONE => NONE,
+                p => remap[p as usize],
+            };
+            let mut end = k + 1;
+            while end < old_n && old_ids[end].level > id.level {
+                cold_it.next();
+                end += 1;
+            }
+            let start = self.hot.len();
+            self.push_subtree(et, id, parent);
+            let now = self.hot.len();
+            from_old.resize(now, NONE);
+            if now > start {
+                // A merged or split node keeps its bounds, and with them its
+                // visibility witnesses.
+                if Arc::ptr_eq(&self.cold[start].bounds, &oc.bounds) {
+                    self.hint[start] = old_hint[k];
+                    self.witness[start] = old_witness[k];
+                }
+                fresh.push(start..now);
+            }
+            k = end;
+        }
+        drop(cold_it);
+        let n = self.hot.len();
+        // Subtree balls: the re-read subtrees, then their ancestors
+        // (descendants first: later in pre-order).
+        let mut up: Vec<u32> = Vec::new();
+        for r in &fresh {
+            self.union_subtree_balls(r.clone());
+            let mut p = self.hot[r.start].parent;
+            while p != NONE {
+                up.push(p);
+                p = self.hot[p as usize].parent;
+            }
+        }
+        up.sort_unstable_by(|a, b| b.cmp(a));
+        up.dedup();
+        for a in up {
+            let a = a as usize;
+            let mut s = self.cold[a].own;
+            for c in self.children[a] {
+                if c != NONE {
+                    s = ball_union(s, self.hot[c as usize].sub);
+                }
+            }
+            self.hot[a].sub = s;
+        }
+        // Neighbours: kept where the old one is kept, else top-down.
+        self.nb.reserve(n);
+        for (i, &ok) in from_old.iter().enumerate() {
+            let nb = std::array::from_fn(|e| {
+                if ok != NONE {
+                    let t = old_nb[ok as usize][e];
+                    if t != NONE && remap[t as usize] != NONE {
+                        return remap[t as usize];
+                    }
+                }
+                self.neighbour_of(i, e)
+            });
+            self.nb.push(nb);
+        }
+        // Colour nodes in elevation pre-order.
+        self.col_of_elev.resize(n, NONE);
+        if let Some(ct) = tree.colour() {
+            self.cnodes.reserve(old_cnodes.len() + 16);
+            self.cmemo.reserve(old_cnodes.len() + 16);
+            for (i, &ok) in from_old.iter().enumerate() {
+                let exists = match self.hot[i].parent {
+                    NONE => true,
+                    p => {
+                        let pc = self.col_of_elev[p as usize];
+                        pc != NONE && self.cnodes[pc as usize].split
+                    }
+                };
+                if !exists {
+                    continue;
+                }
+                let oj = if ok != NONE {
+                    old_col[ok as usize]
+                } else {
+                    NONE
+                };
+                let (c, m) = if oj != NONE && !cdirty[oj as usize] {
+                    let mut c = old_cnodes[oj as usize].clone();
+                    c.elev = i as u32;
+                    (c, old_cmemo[oj as usize])
+                } else {
+                    let id = self.ids[i];
+                    let Some(cn) = ct.get(&id) else { continue };
+                    let c = CNode {
+                        id,
+                        elev: i as u32,
+                        split: cn.split,
+                        lod: cn.lod,
+                        splittable: cn.can_split_data().is_ok(),
+                        record: cn.record,
+                    };
+                    (c, (0, 0.0))
+                };
+                self.col_of_elev[i] = self.cnodes.len() as u32;
+                self.cnodes.push(c);
+                self.cmemo.push(m);
+            }
+        }
+        self.bind_colours();
+        // Keep the old buffers (emptied) for the next splice.
+        sp = Spare {
+            ids: old_ids,
+            hot: old_hot,
+            cold: old_cold,
+            nb: old_nb,
+            hint: old_hint,
+            witness: old_witness,
+            memo: old_memo,
+            col: old_col,
+            cnodes: old_cnodes,
+            cmemo: old_cmemo,
+            children: old_children,
+            flags: edirty,
+            cflags: cdirty,
+            remap,
+            from_old,
+        };
+        sp.clear();
+        self.spare = sp;
+    }
+
+    /// Compare the cache with one rebuilt from scratch from `tree` (a
+    /// consistency check for tests and debugging: the splices of
+    /// [`PartialTree::changes_since`]'s log must give the same flat trees).
+    /// Subtree balls may differ but must hold the node's own ball and its
+    /// children's. Call it right after [`Selector::select`] on the same
+    /// tree.
+    pub fn consistency_error(&self, tree: &PartialTree) -> Option<String> {
+        let mut f = Selector::new();
+        f.rebuild(tree);
+        if self.ids != f.ids {
+            return Some(format!(
+                "node ids differ ({} cached, {} fresh)",
+                self.ids.len(),
+                f.ids.len()
+            ));
+        }
+        if self.roots != f.roots || self.children != f.children || self.nb != f.nb {
+            return Some("roots, children or neighbours differ".into());
+        }
+        for i in 0..self.ids.len() {
+            let (a, b) = (&self.hot[i], &f.hot[i]);
+            let (ca, cb) = (&self.cold[i], &f.cold[i]);
+            let same = a.centre == b.centre
+                && a.radius == b.radius
+                && a.parent == b.parent
+                && a.split == b.split
+                && a.lod == b.lod
+                && a.splittable == b.splittable
+                && ca.own == cb.own
+                && Arc::ptr_eq(&ca.bounds, &cb.bounds)
+                && ca.err1 == cb.err1
+                && ca.err0 == cb.err0
+                && ca.record == cb.record
+                && ca.colour == cb.colour;
+            if !same {
+                return Some(format!("node {:?} differs", self.ids[i]));
+            }
+            let holds = |outer: (DVec3, f64), inner: (DVec3, f64)| {
+                (outer.0 - inner.0).length() + inner.1 <= outer.1 * (1.0 + 1e-12) + 1e-6
+            };
+            let mut inner = vec![ca.own];
+            inner.extend(
+                self.children[i]
+                    .iter()
+                    .filter(|c| **c != NONE)
+                    .map(|c| self.hot[*c as usize].sub),
+            );
+            if !inner.iter().all(|b| holds(a.sub, *b)) {
+                return Some(format!("subtree ball of {:?} too small", self.ids[i]));
+            }
+        }
+        if self.col_of_elev != f.col_of_elev {
+            return Some("colour node links differ".into());
+        }
+        for (a, b) in self.cnodes.iter().zip(&f.cnodes) {
+            let same = a.id == b.id
+                && a.elev == b.elev
+                && a.split == b.split
+                && a.lod == b.lod
+                && a.splittable == b.splittable
+                && a.record == b.record;
+            if !same {
+                return Some(format!("colour node {:?} differs", a.id));
+            }
+        }
+        (self.cnodes.len() != f.cnodes.len()).then(|| "colour node counts differ".into())
     }
 
     /// Select the LODs to draw and trigger requests for one frame: the same
@@ -755,6 +1165,7 @@ impl Selector {
         let ew = et.width as f64;
         let eye = view.camera.eye;
         let sse = ScreenError::new(view.camera.viewport_height_px, view.camera.fov_y);
+        let imp_of = Importance::new(qf);
         // Generation 0 is never valid, so fresh entries are recomputed.
         let key = MemoKey::new(view, qf);
         if self.memo_key != Some(key) || self.memo_gen == 0 {
@@ -796,14 +1207,17 @@ impl Selector {
                 },
             };
             self.state[i] = st;
-            let m = &mut self.memo[i];
-            if m.gen != gen {
-                m.gen = gen;
-                m.imp = importance(block_distance(eye, h.centre, h.radius), h.radius, ew, qf);
-                m.sse_lod = NOT_DRAWN;
-            }
-            let imp = m.imp;
             if h.split {
+                // Split blocks only need the importance where they may
+                // merge (visible or not).
+                let m = &mut self.memo[i];
+                if m.gen != gen {
+                    m.gen = gen;
+                    let d = block_distance(eye, h.centre, h.radius);
+                    m.imp = imp_of.if_may_merge(d, h.radius, ew).unwrap_or(NO_MERGE);
+                    m.sse_lod = NOT_DRAWN;
+                }
+                let imp = m.imp;
                 if wants_merge(imp) && tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok() {
                     cx.out.ops.push(TreeOp {
                         kind: OpKind::Merge,
@@ -814,9 +1228,20 @@ impl Selector {
                 }
                 continue;
             }
+            // Hidden leaves trigger nothing and are not drawn.
             if st == 0 {
                 continue;
             }
+            let m = &mut self.memo[i];
+            let mut dist = None;
+            if m.gen != gen {
+                let d = block_distance(eye, h.centre, h.radius);
+                m.gen = gen;
+                m.imp = imp_of.of(d, h.radius, ew);
+                m.sse_lod = NOT_DRAWN;
+                dist = Some(d);
+            }
+            let imp = m.imp;
             let id = self.ids[i];
             let sel = selected_lod(imp);
             let lod = sel.max(h.lod);
@@ -836,7 +1261,7 @@ impl Selector {
             if m.sse_lod != lod {
                 let c = &self.cold[i];
                 let error = if lod == 1 { c.err1 } else { c.err0 };
-                let dist = block_distance(eye, h.centre, h.radius);
+                let dist = dist.unwrap_or_else(|| block_distance(eye, h.centre, h.radius));
                 m.sse = sse.of(error, dist.max(view.near));
                 m.sse_lod = lod;
             }
@@ -861,14 +1286,15 @@ impl Selector {
                 let h = &self.hot[c.elev as usize];
                 let visible = self.state[c.elev as usize] != 0;
                 let m = &mut self.cmemo[j];
-                if m.0 != gen {
-                    *m = (
-                        gen,
-                        importance(block_distance(eye, h.centre, h.radius), h.radius, cw, qf),
-                    );
-                }
-                let imp = m.1;
                 if c.split {
+                    if m.0 != gen {
+                        let d = block_distance(eye, h.centre, h.radius);
+                        *m = (
+                            gen,
+                            imp_of.if_may_merge(d, h.radius, cw).unwrap_or(NO_MERGE),
+                        );
+                    }
+                    let imp = m.1;
                     if wants_merge(imp) && tree.can_merge(Tree::Colour, &c.id).is_ok() {
                         cx.out.ops.push(TreeOp {
                             kind: OpKind::Merge,
@@ -879,11 +1305,21 @@ impl Selector {
                     }
                     continue;
                 }
-                let sel = selected_lod(imp);
-                self.cdrawn[j] = sel.max(c.lod);
+                // A hidden leaf triggers nothing, and its drawn LOD is
+                // never asked for: the colour bound to a drawn block is on
+                // its (visible) elevation path.
                 if !visible {
                     continue;
                 }
+                if m.0 != gen {
+                    *m = (
+                        gen,
+                        imp_of.of(block_distance(eye, h.centre, h.radius), h.radius, cw),
+                    );
+                }
+                let imp = m.1;
+                let sel = selected_lod(imp);
+                self.cdrawn[j] = sel.max(c.lod);
                 if sel < c.lod {
                     cx.out.loads.push(LoadRequest {
                         tree: Tree::Colour,
@@ -952,21 +1388,56 @@ impl Selector {
 /// [`View::is_visible`] of a node: by its witness point when that
 /// still proves it visible, else by the full test (which finds a new
 /// witness when it can).
+///
+/// A block with parts (§4.2.1, coarse blocks) is visible when its ball
+/// meets the view cone and one part is visible; its witness is a bounding
+/// point of one part (`hint` is then that part's index): inside every
+/// frustum plane and in front of the horizon, it passes each test of that
+/// part but the cone test of the part's ball, which is redone.
 fn exact_visible(view: &View, c: &Cold, hint: &mut u32, witness: &mut Option<DVec3>) -> bool {
-    // A witness is only kept for blocks without parts, whose ball `own` is
-    // then the bounds' own ball.
     if let Some(p) = *witness {
-        if view.planet_in_view()
-            && view.sphere_in_cone(c.own.0, c.own.1)
+        // Without parts, `own` is the bounds' own ball (and the bounds are
+        // not read).
+        let proven = view.planet_in_view()
             && view.point_witnesses_visible(p)
-        {
+            && if !c.parts {
+                view.sphere_in_cone(c.own.0, c.own.1)
+            } else {
+                let b = &*c.bounds;
+                b.parts.get(*hint as usize).is_some_and(|part| {
+                    part.parts.is_empty()
+                        && view.sphere_in_cone(b.centre, b.sphere_radius)
+                        && view.sphere_in_cone(part.centre, part.sphere_radius)
+                })
+            };
+        if proven {
             return true;
         }
     }
-    let b = &*c.bounds;
-    let v = view.is_visible_hinted(b, hint);
     *witness = None;
-    if v && b.parts.is_empty() {
+    let b = &*c.bounds;
+    if !b.parts.is_empty() {
+        let v = view.is_visible(b);
+        if v {
+            let found = b.parts.iter().enumerate().find_map(|(k, part)| {
+                if !part.parts.is_empty() || !view.sphere_in_cone(part.centre, part.sphere_radius) {
+                    return None;
+                }
+                let p = part
+                    .points
+                    .iter()
+                    .find(|q| view.point_witnesses_visible(**q))?;
+                Some((k, *p))
+            });
+            if let Some((k, p)) = found {
+                *hint = k as u32;
+                *witness = Some(p);
+            }
+        }
+        return v;
+    }
+    let v = view.is_visible_hinted(b, hint);
+    if v {
         if let Some(&p) = b.points.get(*hint as usize) {
             if view.point_witnesses_visible(p) {
                 *witness = Some(p);

@@ -419,31 +419,59 @@ impl Clone for Instance {
 #[derive(Debug, Clone)]
 struct Changes {
     instance: Instance,
-    /// Bumped by every split and merge (and when `refined` overflows).
-    structure: u64,
-    /// Blocks refined (LOD 0 applied) since the last structural change.
-    refined: Vec<(Tree, BlockId)>,
+    /// Entries dropped from the front of `log` so far: a stamp older than
+    /// that cannot be served from the log.
+    base: u64,
+    /// Refines, splits and merges (also attempted ones) in order.
+    log: Vec<TreeChange>,
 }
 
-/// Refines logged before the log is dropped for a structural change.
-const MAX_REFINE_LOG: usize = 4096;
+/// Log entries kept; when full, the older half is dropped (a cache that
+/// has not looked for that long rebuilds).
+const MAX_CHANGE_LOG: usize = 4096;
 
 /// A stamp of the tree's state for caches: see [`PartialTree::changes_since`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct TreeStamp {
     instance: u64,
-    structure: u64,
-    refined: usize,
+    /// Absolute position in the change log.
+    pos: u64,
+}
+
+/// What happened to a block (thesis §3.4.1–3.4.2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ChangeKind {
+    /// LOD 0 applied: its LOD, children's records and split readiness
+    /// changed.
+    Refined,
+    /// Split attempted (after the constraint checks): it may now have
+    /// children.
+    Split,
+    /// Merge attempted (after the constraint checks): its children may be
+    /// gone and it may be a leaf.
+    Merged,
+}
+
+/// One logged change of a tree.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TreeChange {
+    /// What happened.
+    pub kind: ChangeKind,
+    /// In which tree.
+    pub tree: Tree,
+    /// To which block.
+    pub block: BlockId,
 }
 
 /// What changed in a tree since a [`TreeStamp`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum TreeChanges<'a> {
-    /// Another tree, or nodes were added or removed (split, merge): rebuild.
+    /// Another tree, or too much changed to be listed: rebuild.
     Structure,
-    /// Only these blocks were refined (their LOD, children's records and so
-    /// split readiness changed); empty when nothing changed.
-    Refined(&'a [(Tree, BlockId)]),
+    /// Only these changes, in order; empty when nothing changed. A node
+    /// absent from the list kept its split state, LOD and data, and every
+    /// node without a listed ancestor-or-self kept its existence.
+    Log(&'a [TreeChange]),
 }
 
 /// A header the client cannot start from.
@@ -535,8 +563,8 @@ impl PartialTree {
             max_diff,
             changes: Changes {
                 instance: Instance::new(),
-                structure: 0,
-                refined: Vec::new(),
+                base: 0,
+                log: Vec::new(),
             },
         })
     }
@@ -546,34 +574,28 @@ impl PartialTree {
     pub fn stamp(&self) -> TreeStamp {
         TreeStamp {
             instance: self.changes.instance.0,
-            structure: self.changes.structure,
-            refined: self.changes.refined.len(),
+            pos: self.changes.base + self.changes.log.len() as u64,
         }
     }
 
     /// What changed since `stamp` was taken (of this very tree value).
     pub fn changes_since(&self, stamp: &TreeStamp) -> TreeChanges<'_> {
         let c = &self.changes;
-        if stamp.instance != c.instance.0
-            || stamp.structure != c.structure
-            || stamp.refined > c.refined.len()
-        {
+        let end = c.base + c.log.len() as u64;
+        if stamp.instance != c.instance.0 || stamp.pos < c.base || stamp.pos > end {
             return TreeChanges::Structure;
         }
-        TreeChanges::Refined(&c.refined[stamp.refined..])
+        TreeChanges::Log(&c.log[(stamp.pos - c.base) as usize..])
     }
 
-    fn structure_changed(&mut self) {
-        self.changes.structure += 1;
-        self.changes.refined.clear();
-    }
-
-    fn refined(&mut self, kind: Tree, id: BlockId) {
-        if self.changes.refined.len() >= MAX_REFINE_LOG {
-            self.structure_changed();
-        } else {
-            self.changes.refined.push((kind, id));
+    fn log(&mut self, kind: ChangeKind, tree: Tree, block: BlockId) {
+        let c = &mut self.changes;
+        if c.log.len() >= MAX_CHANGE_LOG {
+            let drop = MAX_CHANGE_LOG / 2;
+            c.log.drain(..drop);
+            c.base += drop as u64;
         }
+        c.log.push(TreeChange { kind, tree, block });
     }
 
     /// The database header.
@@ -658,7 +680,7 @@ impl PartialTree {
         n.samples = Some(d.samples);
         n.child_refs = Some(d.children);
         n.lod = 0;
-        self.refined(d.tree, d.block);
+        self.log(ChangeKind::Refined, d.tree, d.block);
         true
     }
 
@@ -725,7 +747,7 @@ impl PartialTree {
     pub fn split(&mut self, kind: Tree, id: &BlockId) -> Result<(), Blocked> {
         self.can_split(kind, id)?;
         // Conservative: any attempt past the checks counts as a change.
-        self.structure_changed();
+        self.log(ChangeKind::Split, kind, *id);
         let header = self.header.clone();
         let t = self.tree_mut(kind).ok_or(Blocked::Missing)?;
         let w = t.width;
@@ -777,7 +799,7 @@ impl PartialTree {
     /// Merge `id`'s children back into it (after checking every constraint).
     pub fn merge(&mut self, kind: Tree, id: &BlockId) -> Result<(), Blocked> {
         self.can_merge(kind, id)?;
-        self.structure_changed();
+        self.log(ChangeKind::Merged, kind, *id);
         let t = self.tree_mut(kind).ok_or(Blocked::Missing)?;
         let w = t.width;
         let mut kids = Vec::with_capacity(4);

@@ -3,11 +3,15 @@
 //! and operations, bit for bit, on every frame while the tree grows, is
 //! refined, splits and merges (so the cache is patched and rebuilt), and
 //! while the camera moves, turns and stands still (so per-node hints and
-//! witnesses are reused and go stale).
+//! witnesses are reused and go stale). After every frame the cache, patched
+//! and spliced from the tree's change log, is also compared with one rebuilt
+//! from scratch ([`Selector::consistency_error`]).
 
 use glam::DVec3;
 use planet_client::quality::{QualityConfig, QualityMode};
+use planet_client::request_queue::OpKind;
 use planet_client::selection::{select, Selector};
+use planet_client::stats::FrameStats;
 use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
 use planet_client::visibility::View;
 use planet_client::{Camera, Client, ClientConfig};
@@ -37,18 +41,27 @@ fn surface(dir: DVec3, alt: f64) -> DVec3 {
 }
 
 /// One frame: compare both selections on the current tree, then step.
-fn checked_step(c: &mut Client, s: &mut FakeServer, sel: &mut Selector, cam: &Camera) {
+fn checked_step(
+    c: &mut Client,
+    s: &mut FakeServer,
+    sel: &mut Selector,
+    cam: &Camera,
+) -> FrameStats {
     let (r_min, r_max) = c.radii();
     let view = View::new(cam, r_min, r_max);
     let qf = c.quality_factor();
     let want = select(c.tree(), &view, qf);
     let got = sel.select(c.tree(), &view, qf);
     assert_eq!(got, want, "selector differs from select");
+    if let Some(e) = sel.consistency_error(c.tree()) {
+        panic!("spliced cache differs from a rebuilt one: {e}");
+    }
     let out = c.frame(cam, 1.0 / 60.0);
     s.submit(&out);
     for (id, bytes) in s.tick(db()) {
         c.deliver(id, Ok(bytes));
     }
+    out.stats
 }
 
 #[test]
@@ -103,10 +116,69 @@ fn selector_matches_select() {
         frames += 1;
     }
     c.tree().validate().expect("valid");
-    // The cache was both patched (refines) and rebuilt (splits, merges).
-    assert!(sel.rebuilds() > 5, "{} rebuilds", sel.rebuilds());
-    assert!(sel.rebuilds() < frames, "{} rebuilds", sel.rebuilds());
+    // The cache was built once, then patched (refines) and spliced
+    // (splits, merges).
+    assert_eq!(sel.rebuilds(), 1);
+    assert!(sel.splices() > 5, "{} splices", sel.splices());
+    assert!(sel.splices() < frames, "{} splices", sel.splices());
     assert!(c.totals().refines_applied > 20);
+}
+
+/// A low, fast flight along a great circle over four cube faces (+X, +Y,
+/// −X, −Y) looking ahead: blocks split in front and merge behind, several per
+/// frame, on every face crossed, so the cache is spliced (never rebuilt)
+/// frame after frame while the eye moves.
+#[test]
+fn selector_splices_while_moving_across_faces() {
+    let mut c = client(2e3);
+    let mut s = FakeServer::new(1);
+    let mut sel = Selector::new();
+    let (mut splits, mut merges, mut busy, mut mixed) = (0, 0, 0, 0);
+    let mut faces_split = std::collections::BTreeSet::new();
+    let mut faces_merged = std::collections::BTreeSet::new();
+    let at = |t: f64| DVec3::new(t.cos(), t.sin(), 0.35);
+    // Settle over the start, then fly.
+    let eye = surface(at(-0.4), 80_000.0);
+    let cam = Camera::look_at(eye, surface(at(-0.35), 0.0), eye.normalize());
+    for _ in 0..30 {
+        checked_step(&mut c, &mut s, &mut sel, &cam);
+    }
+    let splices = sel.splices();
+    for k in 0..230 {
+        let t = -0.4 + k as f64 * 0.02;
+        let eye = surface(at(t), 80_000.0);
+        let cam = Camera::look_at(eye, surface(at(t + 0.05), 0.0), eye.normalize());
+        // Executed at the start of this step's frame, seen by the next
+        // step's selection.
+        for op in c.pending_ops() {
+            match op.kind {
+                OpKind::Split => faces_split.insert(op.block.face),
+                OpKind::Merge => faces_merged.insert(op.block.face),
+            };
+        }
+        let st = checked_step(&mut c, &mut s, &mut sel, &cam);
+        splits += st.splits;
+        merges += st.merges;
+        busy += usize::from(st.splits + st.merges >= 2);
+        mixed += usize::from(st.splits > 0 && st.merges > 0);
+    }
+    let splices = sel.splices() - splices;
+    eprintln!(
+        "{splits} splits, {merges} merges, {busy} frames with several, {mixed} with both, {splices} splices"
+    );
+    c.tree().validate().expect("valid");
+    assert_eq!(sel.rebuilds(), 1);
+    assert!(faces_split.len() >= 3, "splits on faces {faces_split:?}");
+    assert!(faces_merged.len() >= 3, "merges on faces {faces_merged:?}");
+    assert!(
+        splits >= 50 && merges >= 50,
+        "{splits} splits, {merges} merges"
+    );
+    assert!(
+        busy >= 30 && mixed >= 10,
+        "{busy} busy frames, {mixed} mixed"
+    );
+    assert!(splices >= 50, "{splices} splices");
 }
 
 /// Another tree value (even a clone of the same tree) is never served from
