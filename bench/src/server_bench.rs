@@ -115,18 +115,17 @@ pub struct ServerArgs {
     /// behaviour, and what independent clients on separate hosts do).
     /// Default 4 (since 2026-11-22 15:00): with one socket for 200
     /// connections, the closed loop's opening burst (800 responses at once,
-    /// in 16 kB datagrams) overflowed its receive buffer (capped at 2 ×
-    /// `net.core.rmem_max`), and the losses cost up to 1.5 s of probe
-    /// timeouts.
+    /// in 16 kB datagrams with `--client-max-udp-payload 16384`) overflowed
+    /// its receive buffer (capped at 2 × `net.core.rmem_max`), and the
+    /// losses cost up to 1.5 s of probe timeouts.
     #[arg(long, default_value_t = 4)]
     pub client_endpoints: usize,
     /// Largest UDP payload the client endpoints accept (quinn's
     /// `max_udp_payload_size` transport parameter; default: the client's
     /// own, 16384 for a loopback server), also passed to the server as
-    /// `--max-udp-payload` (its path-MTU discovery ceiling, default 16384).
-    /// 1452 gives Ethernet-sized datagrams, as over the Internet. On
-    /// loopback (MTU 65536) large datagrams are the counterpart of kernel
-    /// TCP's 64 kB loopback segments.
+    /// `--max-udp-payload` (its path-MTU discovery ceiling, default 1452).
+    /// 16384 gives 16 kB datagrams on loopback (MTU 65536), the counterpart
+    /// of kernel TCP's 64 kB loopback segments.
     #[arg(long)]
     pub client_max_udp_payload: Option<u16>,
     /// Open-loop mode: offered load in requests/s over all clients

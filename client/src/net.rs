@@ -821,11 +821,10 @@ async fn serve_session(
 }
 
 /// Largest UDP payload a client endpoint accepts from a server on the
-/// loopback interface (MTU 65 536) unless configured: the same as the
-/// server's default path-MTU discovery ceiling
-/// (`planet_server::config::DEFAULT_MAX_UDP_PAYLOAD`). A 7 kB response then
-/// travels in one datagram instead of five or six, which is what halves the
-/// server's CPU per request on loopback (docs/BENCHMARKS.md).
+/// loopback interface (MTU 65 536) unless configured. The server still
+/// decides (its `max_udp_payload`, default 1452): with 16 384 there, a 7 kB
+/// response travels in one datagram instead of five or six, which cuts the
+/// server's CPU per request on loopback by a quarter (docs/BENCHMARKS.md).
 pub const LOOPBACK_MAX_UDP_PAYLOAD: u16 = 16_384;
 
 /// Largest UDP payload a client endpoint accepts from other servers unless

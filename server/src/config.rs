@@ -8,7 +8,7 @@
 //! key = "/etc/planet/tls/key.pem"
 //! max_connections = 2000
 //! idle_timeout_ms = 30000
-//! max_udp_payload = 16384           # path-MTU discovery ceiling (bytes)
+//! max_udp_payload = 1452            # path-MTU discovery ceiling (bytes)
 //! initial_window = 65536            # congestion window of a new connection (bytes)
 //!
 //! [[database]]
@@ -146,11 +146,12 @@ pub struct ServerConfig {
     /// transport parameter bounds it too, and planet clients announce
     /// 1 472 bytes (an Ethernet MTU) unless the server is on loopback or
     /// they are configured otherwise, so on the Internet the server never
-    /// probes above what an Ethernet path carries. Default 16 384: on
-    /// loopback (MTU 65 536) a 7 kB response then goes in one datagram
-    /// instead of five or six, as kernel TCP uses 64 kB loopback segments;
-    /// see docs/BENCHMARKS.md for the measurement. 1452 (quinn's default)
-    /// keeps every path at Ethernet sizes whatever the client announces.
+    /// probes above what an Ethernet path carries. Default 1452, quinn's
+    /// default. 16 384 on loopback (MTU 65 536) sends a 7 kB response in
+    /// one datagram instead of five or six, as kernel TCP uses 64 kB
+    /// loopback segments, and cuts the server's CPU per request by a
+    /// quarter, but gave occasional 25–200 ms stalls (without packet loss)
+    /// in open-loop runs; see docs/BENCHMARKS.md.
     pub max_udp_payload: u16,
     /// Congestion window of a new connection, bytes (QUIC's default is
     /// 10 packets, about 14.7 kB). The Welcome carries the database header
@@ -161,7 +162,7 @@ pub struct ServerConfig {
 }
 
 /// Default [`ServerConfig::max_udp_payload`].
-pub const DEFAULT_MAX_UDP_PAYLOAD: u16 = 16_384;
+pub const DEFAULT_MAX_UDP_PAYLOAD: u16 = 1452;
 
 /// Default [`ServerConfig::initial_window`].
 pub const DEFAULT_INITIAL_WINDOW: u64 = 64 * 1024;

@@ -1,7 +1,6 @@
-//! Path-MTU discovery on loopback: with the default `max_udp_payload`
-//! (16 384) and the client's loopback default, a 12 kB record arrives in one
-//! or two datagrams once discovery has finished; with 1452 it takes nine or
-//! more. Before `planet_server::udp::GsoLimit`, batches of 16 kB datagrams
+//! Path-MTU discovery on loopback: with `max_udp_payload` 16 384 and the
+//! client's loopback default, a 12 kB record arrives in one or two datagrams
+//! once discovery has finished; with the default 1452 it takes nine or more. Before `planet_server::udp::GsoLimit`, batches of 16 kB datagrams
 //! above 64 kB were dropped by the kernel (EMSGSIZE) and never arrived.
 
 mod common;
@@ -49,21 +48,21 @@ async fn fewest_datagrams(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn loopback_responses_use_large_datagrams_by_default() {
+async fn loopback_responses_use_large_datagrams_up_to_the_ceiling() {
     let dir = tempfile::tempdir().unwrap();
-    let (cfg, _) = two_tenant_config(dir.path());
+    let (mut cfg, _) = two_tenant_config(dir.path());
     let recs = build_db_with(&dir.path().join("earth.planetdb"), 1, 11_000);
-    assert_eq!(cfg.max_udp_payload, 16_384);
+    cfg.max_udp_payload = 16_384;
     let n = fewest_datagrams(cfg, &recs, 2, Duration::from_secs(5)).await;
     assert!(n <= 2, "a 12 kB record took {n} datagrams");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn ethernet_sized_ceiling_keeps_datagrams_small() {
+async fn default_ceiling_keeps_datagrams_ethernet_sized() {
     let dir = tempfile::tempdir().unwrap();
-    let (mut cfg, _) = two_tenant_config(dir.path());
+    let (cfg, _) = two_tenant_config(dir.path());
     let recs = build_db_with(&dir.path().join("earth.planetdb"), 1, 11_000);
-    cfg.max_udp_payload = 1452;
+    assert_eq!(cfg.max_udp_payload, 1452);
     let n = fewest_datagrams(cfg, &recs, 0, Duration::from_secs(1)).await;
     assert!(
         n >= 9,
