@@ -113,14 +113,19 @@ pub struct ServerArgs {
     /// Client QUIC endpoints (UDP sockets) shared by the connections,
     /// round-robin; 0 = one endpoint per connection (the pre-2026-11-22
     /// behaviour, and what independent clients on separate hosts do).
-    #[arg(long, default_value_t = 1)]
+    /// Default 4 (since 2026-11-22 15:00): with one socket for 200
+    /// connections, the closed loop's opening burst (800 responses at once,
+    /// in 16 kB datagrams with `--client-max-udp-payload 16384`) overflowed
+    /// its receive buffer (capped at 2 × `net.core.rmem_max`), and the
+    /// losses cost up to 1.5 s of probe timeouts.
+    #[arg(long, default_value_t = 4)]
     pub client_endpoints: usize,
-    /// Largest UDP payload the shared client endpoints accept (quinn's
-    /// `max_udp_payload_size` transport parameter; default 1472, an
-    /// Ethernet MTU), also passed to the server as `--max-udp-payload` (its
-    /// path-MTU discovery ceiling, default 1452). On loopback (MTU 65536)
-    /// this is the jumbo-frame counterpart of kernel TCP's 64 kB loopback
-    /// segments; it says nothing about Internet paths.
+    /// Largest UDP payload the client endpoints accept (quinn's
+    /// `max_udp_payload_size` transport parameter; default: the client's
+    /// own, 16384 for a loopback server), also passed to the server as
+    /// `--max-udp-payload` (its path-MTU discovery ceiling, default 1452).
+    /// 16384 gives 16 kB datagrams on loopback (MTU 65536), the counterpart
+    /// of kernel TCP's 64 kB loopback segments.
     #[arg(long)]
     pub client_max_udp_payload: Option<u16>,
     /// Open-loop mode: offered load in requests/s over all clients
@@ -165,7 +170,7 @@ impl Default for ServerArgs {
             server_bin: None,
             client_threads: None,
             server_threads: None,
-            client_endpoints: 1,
+            client_endpoints: 4,
             client_max_udp_payload: None,
             rate: vec![],
             arrivals: Arrivals::Poisson,
@@ -564,7 +569,7 @@ pub async fn connect_many_on(
 }
 
 /// [`connect_many_on`] with endpoints that accept UDP payloads up to
-/// `max_udp_payload` (quinn's default when `None`).
+/// `max_udp_payload` (the client's default when `None`).
 pub async fn connect_many_on_with(
     srv_addr: SocketAddr,
     fingerprint: &str,
@@ -587,7 +592,10 @@ pub async fn connect_many_on_with(
         let ep = (!eps.is_empty()).then(|| eps[i % eps.len()].clone());
         set.spawn(async move {
             let _permit = sem.acquire_owned().await;
-            let opts = bench_connect_options();
+            let opts = ConnectOptions {
+                max_udp_payload,
+                ..bench_connect_options()
+            };
             let r = match ep {
                 Some(ep) => {
                     Connection::connect_on(&ep, srv_addr, "localhost", tls, hello, &opts).await
@@ -606,23 +614,12 @@ pub async fn connect_many_on_with(
     Ok(out.into_iter().flatten().collect())
 }
 
-/// A client endpoint for the bench: `planet_client::net::new_endpoint`, or
-/// with a larger `max_udp_payload_size` (same 4 MiB socket buffers).
+/// A client endpoint for the bench: `planet_client::net::new_endpoint_with`.
 fn bench_endpoint(peer: SocketAddr, max_udp_payload: Option<u16>) -> Result<quinn::Endpoint> {
-    let Some(max) = max_udp_payload else {
-        return Ok(planet_client::net::new_endpoint(peer)?);
-    };
-    let mut cfg = quinn::EndpointConfig::default();
-    cfg.max_udp_payload_size(max)
-        .map_err(|e| anyhow!("--client-max-udp-payload {max}: {e}"))?;
-    let bind: SocketAddr = if peer.is_ipv6() {
-        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
-    } else {
-        (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
-    };
-    let socket = planet_server::udp::bind(bind)?;
-    let runtime = quinn::default_runtime().context("no async runtime for the QUIC endpoint")?;
-    Ok(quinn::Endpoint::new(cfg, None, socket, runtime)?)
+    Ok(planet_client::net::new_endpoint_with(
+        peer,
+        max_udp_payload,
+    )?)
 }
 
 // ---------------------------------------------------------------- request list
@@ -740,6 +737,50 @@ pub struct RunResult {
     /// Open-loop runs: how late the client started requests against their
     /// schedule (client-side overhead, included in `latency`).
     pub lag: Option<Latency>,
+    /// QUIC runs: datagrams of the window, from the client connections'
+    /// quinn statistics.
+    pub udp: Option<UdpCounts>,
+}
+
+/// UDP datagram counts of the client's QUIC connections over a window.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct UdpCounts {
+    /// Datagrams received (server to client).
+    pub rx_datagrams: u64,
+    /// Bytes received in them (UDP payload).
+    pub rx_bytes: u64,
+    /// Datagrams sent (client to server).
+    pub tx_datagrams: u64,
+    /// Packets of the client's own that were declared lost (the server's
+    /// losses are not visible client-side).
+    pub client_lost_packets: u64,
+}
+
+impl UdpCounts {
+    /// Sums the statistics of `conns` now.
+    pub fn of(conns: &[Connection]) -> UdpCounts {
+        conns.iter().fold(UdpCounts::default(), |acc, c| {
+            let s = c.quinn().stats();
+            UdpCounts {
+                rx_datagrams: acc.rx_datagrams + s.udp_rx.datagrams,
+                rx_bytes: acc.rx_bytes + s.udp_rx.bytes,
+                tx_datagrams: acc.tx_datagrams + s.udp_tx.datagrams,
+                client_lost_packets: acc.client_lost_packets + s.path.lost_packets,
+            }
+        })
+    }
+
+    /// `self - before`, saturating.
+    pub fn since(&self, before: &UdpCounts) -> UdpCounts {
+        UdpCounts {
+            rx_datagrams: self.rx_datagrams.saturating_sub(before.rx_datagrams),
+            rx_bytes: self.rx_bytes.saturating_sub(before.rx_bytes),
+            tx_datagrams: self.tx_datagrams.saturating_sub(before.tx_datagrams),
+            client_lost_packets: self
+                .client_lost_packets
+                .saturating_sub(before.client_lost_packets),
+        }
+    }
 }
 
 impl RunResult {
@@ -788,6 +829,16 @@ impl RunResult {
                 ms(l.p50),
                 ms(l.p99),
                 ms(l.max)
+            );
+        }
+        if let Some(u) = &self.udp {
+            let n = self.requests.max(1) as f64;
+            println!(
+                "         UDP datagrams per request: {:.2} server->client (mean {:.0} B), {:.2} client->server; client packets lost {}",
+                u.rx_datagrams as f64 / n,
+                u.rx_bytes as f64 / u.rx_datagrams.max(1) as f64,
+                u.tx_datagrams as f64 / n,
+                u.client_lost_packets
             );
         }
         if let Some(e) = &self.first_error {
@@ -1030,6 +1081,7 @@ async fn open_loop(
         client_cpu,
         offered: Some(rate),
         lag: Some(latency(&mut lag)),
+        udp: None,
     })
 }
 
@@ -1066,6 +1118,7 @@ async fn run_quic(
         );
         let mut out = vec![];
         for (rate, sched) in scheds {
+            let udp0 = UdpCounts::of(&conns);
             let mut r = open_loop(
                 "QUIC",
                 slots.clone(),
@@ -1080,6 +1133,7 @@ async fn run_quic(
             if srv.pid().is_none() {
                 r.server_cpu = None;
             }
+            r.udp = Some(UdpCounts::of(&conns).since(&udp0));
             out.push(r);
         }
         for c in &conns {
@@ -1087,6 +1141,7 @@ async fn run_quic(
         }
         return Ok(out);
     }
+    let udp0 = UdpCounts::of(&conns);
     let cpu0 = cpu_seconds_of(&pids);
     let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
     let start = Instant::now();
@@ -1121,6 +1176,7 @@ async fn run_quic(
     let wall = start.elapsed();
     let cpu1 = cpu_seconds_of(&pids);
     let client_cpu = proc_cpu_seconds(std::process::id()).unwrap_or(0.0) - self0;
+    let udp = UdpCounts::of(&conns).since(&udp0);
     for c in &conns {
         c.close();
     }
@@ -1137,6 +1193,7 @@ async fn run_quic(
         client_cpu,
         offered: None,
         lag: None,
+        udp: Some(udp),
     }])
 }
 
@@ -1505,6 +1562,7 @@ async fn run_nginx(
         client_cpu,
         offered: None,
         lag: None,
+        udp: None,
     }])
 }
 

@@ -152,6 +152,13 @@ pub struct ConnectOptions {
     /// connection, so a 0.5-RTT `Welcome` larger than three times the
     /// client's first flight is not held back a round trip.
     pub tokens: Arc<dyn quinn::TokenStore>,
+    /// Largest UDP payload the connection's own endpoint accepts (QUIC's
+    /// `max_udp_payload_size` transport parameter, which bounds the
+    /// server's path-MTU discovery); `None` = [`auto_max_udp_payload`] of
+    /// the server address. Set it (up to 65 527) on jumbo-frame networks.
+    /// Connections on a shared endpoint ([`Connection::connect_on`]) use
+    /// that endpoint's setting ([`new_endpoint_with`]).
+    pub max_udp_payload: Option<u16>,
 }
 
 impl Default for ConnectOptions {
@@ -162,6 +169,7 @@ impl Default for ConnectOptions {
             transport: None,
             zero_rtt: true,
             tokens: Arc::new(quinn::TokenMemoryCache::default()),
+            max_udp_payload: None,
         }
     }
 }
@@ -173,6 +181,7 @@ impl std::fmt::Debug for ConnectOptions {
             .field("fetch_timeout", &self.fetch_timeout)
             .field("custom_transport", &self.transport.is_some())
             .field("zero_rtt", &self.zero_rtt)
+            .field("max_udp_payload", &self.max_udp_payload)
             .finish_non_exhaustive()
     }
 }
@@ -288,7 +297,7 @@ impl Connection {
         hello: Hello,
         opts: &ConnectOptions,
     ) -> Result<(Connection, Welcome), NetError> {
-        let endpoint = new_endpoint(addr)?;
+        let endpoint = new_endpoint_with(addr, opts.max_udp_payload)?;
         Self::connect_inner(endpoint, addr, server_name, tls, hello, opts).await
     }
 
@@ -907,24 +916,69 @@ async fn serve_session(
     user_closed
 }
 
+/// Largest UDP payload a client endpoint accepts from a server on the
+/// loopback interface (MTU 65 536) unless configured. The server still
+/// decides (its `max_udp_payload`, default 1452): with 16 384 there, a 7 kB
+/// response travels in one datagram instead of five or six, which cuts the
+/// server's CPU per request on loopback by a quarter (docs/BENCHMARKS.md).
+pub const LOOPBACK_MAX_UDP_PAYLOAD: u16 = 16_384;
+
+/// Largest UDP payload a client endpoint accepts from other servers unless
+/// configured: quinn's default, a 1 500-byte Ethernet MTU less the IPv4 and
+/// UDP headers. Announcing more would make the server probe for sizes that
+/// Internet paths drop, for nothing.
+pub const NETWORK_MAX_UDP_PAYLOAD: u16 = 1472;
+
+/// The `max_udp_payload_size` a client announces to the server at `peer`
+/// when not configured: [`LOOPBACK_MAX_UDP_PAYLOAD`] for a loopback address,
+/// [`NETWORK_MAX_UDP_PAYLOAD`] otherwise. The server's path-MTU discovery
+/// never probes above it, so off loopback the datagram sizes are those of
+/// quinn's defaults.
+pub fn auto_max_udp_payload(peer: SocketAddr) -> u16 {
+    if peer.ip().is_loopback() {
+        LOOPBACK_MAX_UDP_PAYLOAD
+    } else {
+        NETWORK_MAX_UDP_PAYLOAD
+    }
+}
+
 /// A client endpoint (one UDP socket on an ephemeral port of the address
-/// family of `peer`, 4 MiB socket buffers) for [`Connection::connect_on`].
+/// family of `peer`, 4 MiB socket buffers, datagrams up to
+/// [`auto_max_udp_payload`]) for [`Connection::connect_on`].
 /// Any number of connections may share it; it is closed when the last handle
 /// and connection are dropped.
 pub fn new_endpoint(peer: SocketAddr) -> Result<quinn::Endpoint, NetError> {
+    new_endpoint_with(peer, None)
+}
+
+/// [`new_endpoint`] accepting UDP payloads up to `max_udp_payload` (1 200 to
+/// 65 527 bytes; `None` = [`auto_max_udp_payload`] of `peer`). The endpoint
+/// reserves `max_udp_payload` × 2 048 bytes of receive buffer (32 MiB at
+/// 16 384; pages are touched only as datagrams arrive).
+pub fn new_endpoint_with(
+    peer: SocketAddr,
+    max_udp_payload: Option<u16>,
+) -> Result<quinn::Endpoint, NetError> {
     let bind: SocketAddr = if peer.is_ipv6() {
         (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
     } else {
         (std::net::Ipv4Addr::UNSPECIFIED, 0).into()
     };
-    client_endpoint(bind).map_err(|e| NetError::Connect(e.to_string()))
+    let max = max_udp_payload.unwrap_or_else(|| auto_max_udp_payload(peer));
+    let mut cfg = quinn::EndpointConfig::default();
+    cfg.max_udp_payload_size(max)
+        .map_err(|_| NetError::Connect(format!("max_udp_payload {max} is outside 1200..=65527")))?;
+    client_endpoint(cfg, bind).map_err(|e| NetError::Connect(e.to_string()))
 }
 
 /// A client endpoint on a UDP socket with 4 MiB buffers (capped by the
 /// kernel's `rmem_max`/`wmem_max`): with the default 208 KiB, bursts of
 /// responses overflowed the receive buffer on loaded machines and QUIC stalled
 /// on probe timeouts. The server does the same in `planet_server::udp`.
-fn client_endpoint(bind: SocketAddr) -> std::io::Result<quinn::Endpoint> {
+fn client_endpoint(
+    cfg: quinn::EndpointConfig,
+    bind: SocketAddr,
+) -> std::io::Result<quinn::Endpoint> {
     use socket2::{Domain, Protocol, Socket, Type};
     const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
     let socket = Socket::new(Domain::for_address(bind), Type::DGRAM, Some(Protocol::UDP))?;
@@ -933,10 +987,5 @@ fn client_endpoint(bind: SocketAddr) -> std::io::Result<quinn::Endpoint> {
     socket.bind(&bind.into())?;
     let runtime = quinn::default_runtime()
         .ok_or_else(|| std::io::Error::other("no async runtime for the QUIC endpoint"))?;
-    quinn::Endpoint::new(
-        quinn::EndpointConfig::default(),
-        None,
-        socket.into(),
-        runtime,
-    )
+    quinn::Endpoint::new(cfg, None, socket.into(), runtime)
 }

@@ -144,9 +144,16 @@ pub struct ServerConfig {
     /// before it is refused with `rate_limited`.
     pub max_rate_wait: Duration,
     /// Ceiling of QUIC path-MTU discovery: the largest UDP payload the
-    /// server probes for and sends (the client's own `max_udp_payload_size`
-    /// also bounds it). Default 1452, quinn's default, safe on Ethernet
-    /// paths; larger values only help on jumbo-frame networks or loopback.
+    /// server probes for and sends. The client's `max_udp_payload_size`
+    /// transport parameter bounds it too, and planet clients announce
+    /// 1 472 bytes (an Ethernet MTU) unless the server is on loopback or
+    /// they are configured otherwise, so on the Internet the server never
+    /// probes above what an Ethernet path carries. Default 1452, quinn's
+    /// default. 16 384 on loopback (MTU 65 536) sends a 7 kB response in
+    /// one datagram instead of five or six, as kernel TCP uses 64 kB
+    /// loopback segments, and cuts the server's CPU per request by a
+    /// quarter, but gave occasional 25–200 ms stalls (without packet loss)
+    /// in open-loop runs; see docs/BENCHMARKS.md.
     pub max_udp_payload: u16,
     /// Congestion window of a new connection, bytes (QUIC's default is
     /// 10 packets, about 14.7 kB). The Welcome carries the database header

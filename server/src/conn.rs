@@ -409,6 +409,19 @@ pub(crate) async fn serve_connection(
     }
     let _ = abort_tx.send(true);
     tasks.shutdown().await;
+    let stats = conn.stats();
+    tracing::debug!(
+        %peer,
+        path_mtu = stats.path.current_mtu,
+        rtt_us = stats.path.rtt.as_micros() as u64,
+        datagrams_sent = stats.udp_tx.datagrams,
+        bytes_sent = stats.udp_tx.bytes,
+        packets_lost = stats.path.lost_packets,
+        mtu_probes = stats.path.sent_plpmtud_probes,
+        mtu_probes_lost = stats.path.lost_plpmtud_probes,
+        black_holes = stats.path.black_holes_detected,
+        "connection ended"
+    );
 }
 
 async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {

@@ -703,8 +703,9 @@ fn config_errors_are_clear() {
         ServerConfig::from_toml_str(&ok, dir.path())
             .unwrap()
             .max_udp_payload,
-        1452
+        planet_server::config::DEFAULT_MAX_UDP_PAYLOAD
     );
+    assert_eq!(planet_server::config::DEFAULT_MAX_UDP_PAYLOAD, 1452);
     let jumbo = format!("max_udp_payload = 8952\n{ok}");
     let c = ServerConfig::from_toml_str(&jumbo, dir.path()).unwrap();
     assert_eq!(c.max_udp_payload, 8952);

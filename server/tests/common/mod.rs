@@ -42,6 +42,11 @@ fn child_ref(offset: u64, size: u32) -> ChildRef {
 /// Writes a database: per face a root record with 4 leaf children; payload
 /// sizes ~1-2 KB. Returns every record's (offset, size).
 pub fn build_db(path: &Path, seed: u64) -> Vec<(u64, u32)> {
+    build_db_with(path, seed, 0)
+}
+
+/// [`build_db`] with `extra` more payload bytes in every leaf record.
+pub fn build_db_with(path: &Path, seed: u64, extra: usize) -> Vec<(u64, u32)> {
     let mut w = DbWriter::create(path).expect("create db");
     let mut all = Vec::new();
     let mut roots = [ChildRef::default(); 6];
@@ -49,7 +54,10 @@ pub fn build_db(path: &Path, seed: u64) -> Vec<(u64, u32)> {
         let root = BlockId::root(*face);
         let mut kids = Vec::new();
         for (k, child) in root.children().iter().enumerate() {
-            let payload = noise(seed * 1000 + (f * 10 + k) as u64, 1000 + 97 * k + 13 * f);
+            let payload = noise(
+                seed * 1000 + (f * 10 + k) as u64,
+                1000 + 97 * k + 13 * f + extra,
+            );
             let rec = encode_record(Tree::Elevation, *child, &[], &payload);
             let (off, size) = w.append(&rec).expect("append");
             all.push((off, size));
