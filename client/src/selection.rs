@@ -343,6 +343,8 @@ struct Hot {
     centre: DVec3,
     radius: f64,
     parent: u32,
+    /// Its [`Cold`] slot (stable while the node stays).
+    slot: u32,
     split: bool,
     /// Its last LOD (leaves).
     lod: u8,
@@ -351,9 +353,15 @@ struct Hot {
 }
 
 /// What the frame loop reads of a node only when it is undecided, drawn or
-/// triggers something.
+/// triggers something, with its visibility witnesses (§4.2.1). Kept in a
+/// stable slot ([`Hot::slot`]) that a splice (§3.4.1) does not move.
 #[derive(Debug, Clone)]
 struct Cold {
+    /// The bounding point last found in front of the horizon (blocks with
+    /// parts: the part of the witness).
+    hint: u32,
+    /// A bounding point that proved the node visible last time.
+    witness: Option<DVec3>,
     /// A ball holding the node's bounding points and its parts' points.
     own: (DVec3, f64),
     bounds: Arc<BlockBounds>,
@@ -443,7 +451,9 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 pub struct Selector {
     stamp: Option<TreeStamp>,
     hot: Vec<Hot>,
+    /// Cold slots ([`Hot::slot`]) and the free ones.
     cold: Vec<Cold>,
+    free: Vec<u32>,
     ids: Vec<BlockId>,
     cnodes: Vec<CNode>,
     /// Per elevation node: children (by child index), the deepest nodes
@@ -453,11 +463,6 @@ pub struct Selector {
     nb: Vec<[u32; 4]>,
     col_of_elev: Vec<u32>,
     roots: [u32; 6],
-    /// Per node: the bounding point last found in front of the horizon
-    /// (blocks with parts: the part of the witness).
-    hint: Vec<u32>,
-    /// Per node: a bounding point that proved it visible last time.
-    witness: Vec<Option<DVec3>>,
     /// Per frame: 0 hidden, 1 visible, 2 visible with the whole subtree.
     state: Vec<u8>,
     /// Per frame: the drawn LOD of visible leaves.
@@ -486,10 +491,7 @@ pub struct Selector {
 struct Spare {
     ids: Vec<BlockId>,
     hot: Vec<Hot>,
-    cold: Vec<Cold>,
     nb: Vec<[u32; 4]>,
-    hint: Vec<u32>,
-    witness: Vec<Option<DVec3>>,
     memo: Vec<Memo>,
     col: Vec<u32>,
     cnodes: Vec<CNode>,
@@ -505,10 +507,7 @@ impl Spare {
     fn clear(&mut self) {
         self.ids.clear();
         self.hot.clear();
-        self.cold.clear();
         self.nb.clear();
-        self.hint.clear();
-        self.witness.clear();
         self.memo.clear();
         self.col.clear();
         self.cnodes.clear();
@@ -630,7 +629,7 @@ impl Selector {
                 h.split = n.split;
                 h.lod = n.lod;
                 h.splittable = n.can_split_data().is_ok();
-                self.cold[i].err0 = child_error(n);
+                self.cold[h.slot as usize].err0 = child_error(n);
                 self.memo[i].sse_lod = NOT_DRAWN;
             }
             Tree::Colour => {
@@ -647,18 +646,25 @@ impl Selector {
 
     /// Append an elevation node (pre-order: its parent is already in) and
     /// link it to its parent (or as its face's root).
-    fn push_node(&mut self, id: BlockId, hot: Hot, cold: Cold, memo: Memo) -> u32 {
+    fn push_node(&mut self, id: BlockId, mut hot: Hot, cold: Cold, memo: Memo) -> u32 {
         let i = self.hot.len() as u32;
         match hot.parent {
             NONE => self.roots[id.face.index() as usize] = i,
             p => self.children[p as usize][id.child_index()] = i,
         }
+        hot.slot = match self.free.pop() {
+            Some(s) => {
+                self.cold[s as usize] = cold;
+                s
+            }
+            None => {
+                self.cold.push(cold);
+                (self.cold.len() - 1) as u32
+            }
+        };
         self.hot.push(hot);
-        self.cold.push(cold);
         self.ids.push(id);
         self.children.push([NONE; 4]);
-        self.hint.push(0);
-        self.witness.push(None);
         self.memo.push(memo);
         i
     }
@@ -681,11 +687,14 @@ impl Selector {
                 centre: b.centre,
                 radius: b.radius,
                 parent,
+                slot: NONE,
                 split: n.split,
                 lod: n.lod,
                 splittable: n.can_split_data().is_ok(),
             };
             let cold = Cold {
+                hint: 0,
+                witness: None,
                 own,
                 bounds: b.clone(),
                 parts: !b.parts.is_empty(),
@@ -749,7 +758,7 @@ impl Selector {
                     p => cov[p as usize],
                 }
             };
-            self.cold[i].colour = if self.hot[i].split {
+            self.cold[self.hot[i].slot as usize].colour = if self.hot[i].split {
                 Binding::None
             } else {
                 match cov[i] {
@@ -764,13 +773,10 @@ impl Selector {
 
     fn clear(&mut self) {
         self.hot.clear();
-        self.cold.clear();
         self.ids.clear();
         self.children.clear();
         self.nb.clear();
         self.col_of_elev.clear();
-        self.hint.clear();
-        self.witness.clear();
         self.memo.clear();
         self.cmemo.clear();
         self.cnodes.clear();
@@ -783,10 +789,10 @@ impl Selector {
     fn rebuild(&mut self, tree: &PartialTree) {
         self.rebuilds += 1;
         let old_ids = std::mem::take(&mut self.ids);
-        let old_hint = std::mem::take(&mut self.hint);
-        let old_witness = std::mem::take(&mut self.witness);
+        let old_hot = std::mem::take(&mut self.hot);
         let old_cold = std::mem::take(&mut self.cold);
         self.clear();
+        self.free.clear();
         let et = tree.elevation();
         for f in Face::ALL {
             self.push_subtree(et, BlockId::root(f), NONE);
@@ -794,13 +800,15 @@ impl Selector {
         let n = self.hot.len();
         // Keep the hints and witnesses of nodes that stay (same bounds).
         for (k, id) in old_ids.iter().enumerate() {
-            if old_hint[k] == 0 && old_witness[k].is_none() {
+            let oc = &old_cold[old_hot[k].slot as usize];
+            if oc.hint == 0 && oc.witness.is_none() {
                 continue;
             }
             if let Some(i) = self.find(id) {
-                if Arc::ptr_eq(&self.cold[i].bounds, &old_cold[k].bounds) {
-                    self.hint[i] = old_hint[k];
-                    self.witness[i] = old_witness[k];
+                let c = &mut self.cold[self.hot[i].slot as usize];
+                if Arc::ptr_eq(&c.bounds, &oc.bounds) {
+                    c.hint = oc.hint;
+                    c.witness = oc.witness;
                 }
             }
         }
@@ -852,8 +860,10 @@ impl Selector {
     /// Apply logged splits and merges to the flat arrays (thesis §3.4.1)
     /// without reading the unchanged nodes from the tree: one pass over the
     /// old arrays in pre-order copies every node outside a changed subtree
-    /// (with its bounds, witnesses and memoised values) and re-reads each
-    /// changed node's subtree from the tree in its place; then
+    /// (with its memoised values; its bounds, records and witnesses stay in
+    /// their stable [`Cold`] slot, so the copy moves about half the bytes)
+    /// and re-reads each changed node's subtree from the tree in its place,
+    /// reusing the slots of the removed nodes; then
     ///
     /// - subtree balls are recomputed in the re-read subtrees and up their
     ///   ancestor chains;
@@ -895,10 +905,7 @@ impl Selector {
         // The old arrays; the new ones reuse the buffers of the last splice.
         let old_ids = std::mem::replace(&mut self.ids, std::mem::take(&mut sp.ids));
         let old_hot = std::mem::replace(&mut self.hot, std::mem::take(&mut sp.hot));
-        let mut old_cold = std::mem::replace(&mut self.cold, std::mem::take(&mut sp.cold));
         let old_nb = std::mem::replace(&mut self.nb, std::mem::take(&mut sp.nb));
-        let old_hint = std::mem::replace(&mut self.hint, std::mem::take(&mut sp.hint));
-        let old_witness = std::mem::replace(&mut self.witness, std::mem::take(&mut sp.witness));
         let old_memo = std::mem::replace(&mut self.memo, std::mem::take(&mut sp.memo));
         let old_col = std::mem::replace(&mut self.col_of_elev, std::mem::take(&mut sp.col));
         let old_cnodes = std::mem::replace(&mut self.cnodes, std::mem::take(&mut sp.cnodes));
@@ -906,11 +913,8 @@ impl Selector {
         let old_children = std::mem::replace(&mut self.children, std::mem::take(&mut sp.children));
         self.clear();
         self.hot.reserve(old_n + 64);
-        self.cold.reserve(old_n + 64);
         self.ids.reserve(old_n + 64);
         self.children.reserve(old_n + 64);
-        self.hint.reserve(old_n + 64);
-        self.witness.reserve(old_n + 64);
         self.memo.reserve(old_n + 64);
         let et = tree.elevation();
         // Old index → new index (NONE: changed or removed), new → old.
@@ -920,7 +924,6 @@ impl Selector {
         let mut from_old = std::mem::take(&mut sp.from_old);
         from_old.clear();
         let mut fresh: Vec<std::ops::Range<usize>> = Vec::new();
-        let mut cold_it = old_cold.drain(..);
         let mut k = 0;
         while k < old_n {
             // A run of kept nodes, copied in bulk. A kept node's parent is
@@ -930,10 +933,7 @@ impl Selector {
                 let i0 = self.hot.len();
                 self.hot.extend_from_slice(&old_hot[k..run]);
                 self.ids.extend_from_slice(&old_ids[k..run]);
-                self.hint.extend_from_slice(&old_hint[k..run]);
-                self.witness.extend_from_slice(&old_witness[k..run]);
                 self.memo.extend_from_slice(&old_memo[k..run]);
-                self.cold.extend(cold_it.by_ref().take(run - k));
                 self.children.resize(self.hot.len(), [NONE; 4]);
                 from_old.extend(k as u32..run as u32);
                 for (o, i) in (k..run).zip(i0..) {
@@ -951,7 +951,6 @@ impl Selector {
                 k = run;
                 continue;
             }
-            let Some(oc) = cold_it.next() else { break };
             let id = old_ids[k];
             let parent = match old_hot[k].parent {
                 NONE => NONE,
@@ -959,7 +958,6 @@ impl Selector {
             };
             let mut end = k + 1;
             while end < old_n && old_ids[end].level > id.level {
-                cold_it.next();
                 end += 1;
             }
             let start = self.hot.len();
@@ -969,15 +967,18 @@ impl Selector {
             if now > start {
                 // A merged or split node keeps its bounds, and with them its
                 // visibility witnesses.
-                if Arc::ptr_eq(&self.cold[start].bounds, &oc.bounds) {
-                    self.hint[start] = old_hint[k];
-                    self.witness[start] = old_witness[k];
+                let os = old_hot[k].slot as usize;
+                let ns = self.hot[start].slot as usize;
+                if Arc::ptr_eq(&self.cold[ns].bounds, &self.cold[os].bounds) {
+                    self.cold[ns].hint = self.cold[os].hint;
+                    self.cold[ns].witness = self.cold[os].witness;
                 }
                 fresh.push(start..now);
             }
+            // The old subtree's slots are free for the next re-read one.
+            self.free.extend(old_hot[k..end].iter().map(|h| h.slot));
             k = end;
         }
-        drop(cold_it);
         let n = self.hot.len();
         // Subtree balls: the re-read subtrees, then their ancestors
         // (descendants first: later in pre-order).
@@ -994,7 +995,7 @@ impl Selector {
         up.dedup();
         for a in up {
             let a = a as usize;
-            let mut s = self.cold[a].own;
+            let mut s = self.cold[self.hot[a].slot as usize].own;
             for c in self.children[a] {
                 if c != NONE {
                     s = ball_union(s, self.hot[c as usize].sub);
@@ -1064,10 +1065,7 @@ impl Selector {
         sp = Spare {
             ids: old_ids,
             hot: old_hot,
-            cold: old_cold,
             nb: old_nb,
-            hint: old_hint,
-            witness: old_witness,
             memo: old_memo,
             col: old_col,
             cnodes: old_cnodes,
@@ -1103,7 +1101,7 @@ impl Selector {
         }
         for i in 0..self.ids.len() {
             let (a, b) = (&self.hot[i], &f.hot[i]);
-            let (ca, cb) = (&self.cold[i], &f.cold[i]);
+            let (ca, cb) = (&self.cold[a.slot as usize], &f.cold[b.slot as usize]);
             let same = a.centre == b.centre
                 && a.radius == b.radius
                 && a.parent == b.parent
@@ -1191,7 +1189,7 @@ impl Selector {
                     Some(true) => 2,
                     Some(false) => 0,
                     None => {
-                        let c = &self.cold[i];
+                        let c = &mut self.cold[h.slot as usize];
                         // A leaf's subtree ball is its own ball.
                         let own = if h.split {
                             view.classify_sphere(c.own.0, c.own.1)
@@ -1200,8 +1198,7 @@ impl Selector {
                         };
                         match own {
                             Some(v) => v as u8,
-                            None => exact_visible(view, c, &mut self.hint[i], &mut self.witness[i])
-                                as u8,
+                            None => exact_visible(view, c) as u8,
                         }
                     }
                 },
@@ -1250,7 +1247,7 @@ impl Selector {
                 cx.out.loads.push(LoadRequest {
                     tree: Tree::Elevation,
                     block: id,
-                    record: self.cold[i].record,
+                    record: self.cold[h.slot as usize].record,
                     importance: refine_importance(h.lod, imp),
                     forced: false,
                 });
@@ -1259,7 +1256,7 @@ impl Selector {
             }
             let m = &mut self.memo[i];
             if m.sse_lod != lod {
-                let c = &self.cold[i];
+                let c = &self.cold[h.slot as usize];
                 let error = if lod == 1 { c.err1 } else { c.err0 };
                 let dist = dist.unwrap_or_else(|| block_distance(eye, h.centre, h.radius));
                 m.sse = sse.of(error, dist.max(view.near));
@@ -1344,7 +1341,7 @@ impl Selector {
         // Neighbour LODs and colour bindings (split and hidden nodes have
         // no drawn LOD).
         for (d, &i) in cx.out.draw.iter_mut().zip(&self.draw_idx) {
-            let c = &self.cold[i as usize];
+            let c = &self.cold[self.hot[i as usize].slot as usize];
             for (k, &j) in self.nb[i as usize].iter().enumerate() {
                 if j == NONE {
                     continue;
@@ -1394,16 +1391,24 @@ impl Selector {
 /// point of one part (`hint` is then that part's index): inside every
 /// frustum plane and in front of the horizon, it passes each test of that
 /// part but the cone test of the part's ball, which is redone.
-fn exact_visible(view: &View, c: &Cold, hint: &mut u32, witness: &mut Option<DVec3>) -> bool {
+fn exact_visible(view: &View, c: &mut Cold) -> bool {
+    let Cold {
+        hint,
+        witness,
+        own,
+        bounds,
+        parts,
+        ..
+    } = c;
     if let Some(p) = *witness {
         // Without parts, `own` is the bounds' own ball (and the bounds are
         // not read).
         let proven = view.planet_in_view()
             && view.point_witnesses_visible(p)
-            && if !c.parts {
-                view.sphere_in_cone(c.own.0, c.own.1)
+            && if !*parts {
+                view.sphere_in_cone(own.0, own.1)
             } else {
-                let b = &*c.bounds;
+                let b = &**bounds;
                 b.parts.get(*hint as usize).is_some_and(|part| {
                     part.parts.is_empty()
                         && view.sphere_in_cone(b.centre, b.sphere_radius)
@@ -1415,7 +1420,7 @@ fn exact_visible(view: &View, c: &Cold, hint: &mut u32, witness: &mut Option<DVe
         }
     }
     *witness = None;
-    let b = &*c.bounds;
+    let b = &**bounds;
     if !b.parts.is_empty() {
         let v = view.is_visible(b);
         if v {
