@@ -167,16 +167,7 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
                 view.camera.viewport_height_px,
                 view.camera.fov_y,
             );
-            let w = if lod == 0 { et.width } else { et.width / 2 } as u64;
-            cx.out.triangles += 2 * w * w;
-            cx.out.draw.push(DrawBlock {
-                block: id,
-                lod,
-                neighbours: [None; 4],
-                colour: None,
-                importance: imp,
-                screen_error: sse,
-            });
+            cx.draw(id, lod, et.width, imp, sse);
         }
     }
     // Colour tree.
@@ -275,6 +266,22 @@ fn neighbour_lod(
 }
 
 impl Ctx<'_> {
+    /// Adds an elevation block to the draw list at `lod` (neighbours and
+    /// colour are filled in later) and counts its triangles: `2·w²`, with
+    /// `w` the block width for `lod` 0 and half of it for `lod` 1.
+    fn draw(&mut self, block: BlockId, lod: u8, width: usize, importance: f64, screen_error: f64) {
+        let w = if lod == 0 { width } else { width / 2 } as u64;
+        self.out.triangles += 2 * w * w;
+        self.out.draw.push(DrawBlock {
+            block,
+            lod,
+            neighbours: [None; 4],
+            colour: None,
+            importance,
+            screen_error,
+        });
+    }
+
     fn load(&mut self, tree: Tree, block: BlockId, importance: f64, forced: bool) {
         let Some(n) = self.tree.tree(tree).and_then(|t| t.get(&block)) else {
             return;
@@ -1262,16 +1269,7 @@ impl Selector {
                 m.sse = sse.of(error, dist.max(view.near));
                 m.sse_lod = lod;
             }
-            let w = if lod == 0 { et.width } else { et.width / 2 } as u64;
-            cx.out.triangles += 2 * w * w;
-            cx.out.draw.push(DrawBlock {
-                block: id,
-                lod,
-                neighbours: [None; 4],
-                colour: None,
-                importance: imp,
-                screen_error: m.sse,
-            });
+            cx.draw(id, lod, et.width, imp, m.sse);
             self.draw_idx.push(i as u32);
         }
         // Colour tree.

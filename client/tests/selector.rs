@@ -7,37 +7,20 @@
 //! and spliced from the tree's change log, is also compared with one rebuilt
 //! from scratch ([`Selector::consistency_error`]).
 
+mod common;
+
+use common::*;
 use glam::DVec3;
-use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::request_queue::OpKind;
 use planet_client::selection::{select, Selector};
 use planet_client::stats::FrameStats;
-use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
+use planet_client::testdb::FakeServer;
 use planet_client::visibility::View;
-use planet_client::{Camera, Client, ClientConfig};
+use planet_client::{Camera, Client};
 use proptest::prelude::*;
-use std::sync::OnceLock;
-
-fn db() -> &'static TestDb {
-    static DB: OnceLock<TestDb> = OnceLock::new();
-    DB.get_or_init(|| TestDb::build(TestDbConfig::default()))
-}
 
 fn client(qf: f64) -> Client {
-    let cfg = ClientConfig {
-        decode_threads: 0,
-        quality: QualityConfig {
-            mode: QualityMode::Fixed,
-            initial: qf,
-            ..QualityConfig::default()
-        },
-        ..ClientConfig::default()
-    };
-    Client::new(db().header.clone(), cfg).expect("client")
-}
-
-fn surface(dir: DVec3, alt: f64) -> DVec3 {
-    dir.normalize() * (db().header.datum.equatorial_radius() + alt)
+    fixed_qf_client(qf, 0)
 }
 
 /// One frame: compare both selections on the current tree, then step.
@@ -69,52 +52,30 @@ fn selector_matches_select() {
     let mut c = client(1e5);
     let mut s = FakeServer::new(1);
     let mut sel = Selector::new();
-    let mut frames = 0u64;
     let base = DVec3::new(1.0, 0.2, 0.3);
+    let down = |eye: DVec3| Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
     // Descend, turn on the spot, fly along, stand still, climb away.
-    for k in 0..120 {
-        let alt = 2e7 * 0.93f64.powi(k);
-        let eye = surface(base, alt);
-        checked_step(
-            &mut c,
-            &mut s,
-            &mut sel,
-            &Camera::look_at(eye, DVec3::ZERO, DVec3::Z),
-        );
-        frames += 1;
-    }
+    let mut cams: Vec<Camera> = (0..120)
+        .map(|k| down(surface(base, 2e7 * 0.93f64.powi(k))))
+        .collect();
     let eye = surface(base, 2e7 * 0.93f64.powi(120));
-    for k in 0..90 {
+    cams.extend((0..90).map(|k| {
         let a = k as f64 * 0.05;
         let f = DVec3::new(-a.cos(), a.sin(), -0.3);
-        checked_step(
-            &mut c,
-            &mut s,
-            &mut sel,
-            &Camera::look_at(eye, eye + f, eye.normalize()),
-        );
-        frames += 1;
-    }
+        Camera::look_at(eye, eye + f, eye.normalize())
+    }));
     for k in 0..90 {
         let dir = base + DVec3::new(0.0, k as f64 * 0.01, 0.0);
         let eye = surface(dir, 60_000.0);
         let target = surface(dir + DVec3::new(0.0, 0.05, 0.0), 0.0);
         let cam = Camera::look_at(eye, target, eye.normalize());
-        for _ in 0..(if k % 30 == 0 { 5 } else { 1 }) {
-            checked_step(&mut c, &mut s, &mut sel, &cam);
-            frames += 1;
-        }
+        cams.extend(std::iter::repeat_n(cam, if k % 30 == 0 { 5 } else { 1 }));
     }
-    for k in 0..120 {
-        let eye = surface(base, 60_000.0 * 1.08f64.powi(k));
-        checked_step(
-            &mut c,
-            &mut s,
-            &mut sel,
-            &Camera::look_at(eye, DVec3::ZERO, DVec3::Z),
-        );
-        frames += 1;
+    cams.extend((0..120).map(|k| down(surface(base, 60_000.0 * 1.08f64.powi(k)))));
+    for cam in &cams {
+        checked_step(&mut c, &mut s, &mut sel, cam);
     }
+    let frames = cams.len() as u64;
     c.tree().validate().expect("valid");
     // The cache was built once, then patched (refines) and spliced
     // (splits, merges).
@@ -220,22 +181,16 @@ proptest! {
     /// Random camera moves (position, direction, altitude, quality factor).
     #[test]
     fn selector_matches_select_on_random_moves(
-        moves in proptest::collection::vec(
-            ((-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 3.0f64..7.3, (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 1usize..6),
-            1..6),
+        moves in camera_moves(),
         qf_log in 2.0f64..7.0,
         latency in 0u64..3,
     ) {
         let mut c = client(10f64.powf(qf_log));
         let mut s = FakeServer::new(latency);
         let mut sel = Selector::new();
-        for ((x, y, z), alt_log, (fx, fy, fz), frames) in moves {
-            let dir = DVec3::new(x, y, z);
-            let dir = if dir.length() < 1e-3 { DVec3::X } else { dir };
-            let eye = surface(dir, 10f64.powf(alt_log));
-            let f = DVec3::new(fx, fy, fz);
-            let f = if f.length() < 1e-3 { -eye } else { f };
-            for k in 0..frames * 4 {
+        for m in &moves {
+            let (eye, f) = move_eye_forward(m);
+            for k in 0..m.3 * 4 {
                 // Turn a little every frame around the same eye.
                 let f = f + DVec3::new(0.0, 0.0, k as f64 * 0.01);
                 let cam = Camera::look_at(eye, eye + f, eye.normalize());

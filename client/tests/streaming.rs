@@ -1,6 +1,9 @@
 //! End-to-end tests of the client against the synthetic database and the
 //! fake server (no network).
 
+mod common;
+
+use common::*;
 use glam::DVec3;
 use planet_client::importance::{block_distance, importance, selected_lod, wants_split};
 use planet_client::quality::{QualityConfig, QualityMode};
@@ -13,24 +16,9 @@ use planet_core::format::Tree;
 use planet_core::lod::is_first_lod;
 use planet_core::BlockId;
 use proptest::prelude::*;
-use std::sync::OnceLock;
-
-fn db() -> &'static TestDb {
-    static DB: OnceLock<TestDb> = OnceLock::new();
-    DB.get_or_init(|| TestDb::build(TestDbConfig::default()))
-}
 
 fn client(threads: usize) -> Client {
-    let cfg = ClientConfig {
-        decode_threads: threads,
-        quality: QualityConfig {
-            mode: QualityMode::Fixed,
-            initial: 1e4,
-            ..QualityConfig::default()
-        },
-        ..ClientConfig::default()
-    };
-    Client::new(db().header.clone(), cfg).expect("client")
+    fixed_qf_client(1e4, threads)
 }
 
 fn step(c: &mut Client, s: &mut FakeServer, cam: &Camera) -> FrameOutput {
@@ -71,10 +59,6 @@ fn converge(c: &mut Client, s: &mut FakeServer, cam: &Camera, max: usize) -> Fra
         }
     }
     panic!("did not converge in {max} frames");
-}
-
-fn surface(dir: DVec3, alt: f64) -> DVec3 {
-    dir.normalize() * (db().header.datum.equatorial_radius() + alt)
 }
 
 fn ground_camera() -> Camera {
@@ -365,21 +349,15 @@ proptest! {
     /// returns it to the six roots of each tree (no leaks).
     #[test]
     fn camera_moves_keep_tree_valid(
-        moves in proptest::collection::vec(
-            ((-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 3.0f64..7.3, (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 1usize..6),
-            1..6),
+        moves in camera_moves(),
         latency in 0u64..3,
     ) {
         let mut c = client(0);
         let mut s = FakeServer::new(latency);
-        for ((x, y, z), alt_log, (fx, fy, fz), frames) in moves {
-            let dir = DVec3::new(x, y, z);
-            let dir = if dir.length() < 1e-3 { DVec3::X } else { dir };
-            let eye = surface(dir, 10f64.powf(alt_log));
-            let f = DVec3::new(fx, fy, fz);
-            let f = if f.length() < 1e-3 { -eye } else { f };
+        for m in &moves {
+            let (eye, f) = move_eye_forward(m);
             let cam = Camera::look_at(eye, eye + f, eye.normalize());
-            for _ in 0..frames * 4 {
+            for _ in 0..m.3 * 4 {
                 step(&mut c, &mut s, &cam);
                 if let Err(e) = c.tree().validate() {
                     prop_assert!(false, "{e}");
