@@ -3,11 +3,14 @@
 
 use std::cell::RefCell;
 use std::collections::HashSet;
+use std::future::Future;
+use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use futures_util::stream::{FuturesUnordered, StreamExt};
 use planet_core::format::{peek_record_len, record_checksum_ok, SUPERBLOCK_LEN};
 use planet_protocol::{
     decode_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight, Limits,
@@ -15,7 +18,6 @@ use planet_protocol::{
 };
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
-use tokio::task::JoinSet;
 
 use crate::db::{MappedDb, RecordSlice};
 use crate::metrics::RequestOutcome;
@@ -25,8 +27,6 @@ use crate::{Shared, TenantRt};
 const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long a client has to send (and finish) a request on a request stream.
 const REQUEST_READ_TIMEOUT: Duration = Duration::from_secs(10);
-/// How long we wait for the client to acknowledge a response.
-const ACK_TIMEOUT: Duration = Duration::from_secs(30);
 /// How long a fatal error / goodbye frame gets to reach the client.
 const FLUSH_TIMEOUT: Duration = Duration::from_millis(500);
 /// Streams allowed beyond `max_in_flight` (the control stream, plus slack
@@ -214,7 +214,12 @@ pub(crate) async fn serve_connection(
     });
     let (abort_tx, abort_rx) = watch::channel(false);
     let mut session = ServerSession::new();
-    let mut tasks: JoinSet<()> = JoinSet::new();
+    // The connection's requests, polled by this task rather than spawned
+    // one task each: most complete in their first poll (the request frame
+    // arrives with the stream, the response fits the flow-control window),
+    // and a spawned task cost a scheduler round trip, a join and a wake-up
+    // of this task per request.
+    let mut tasks: FuturesUnordered<RequestFuture> = FuturesUnordered::new();
     let mut ctrl_open = true;
     let mut accepting = true;
     let mut draining: Option<(tokio::time::Instant, u32, &'static str)> = None;
@@ -232,7 +237,7 @@ pub(crate) async fn serve_connection(
         let step = tokio::select! {
             r = ctrl_recv.read_chunk(16 * 1024, true), if ctrl_open => Step::Ctrl(r),
             r = conn.accept_bi(), if accepting => Step::Stream(r),
-            Some(_) = tasks.join_next(), if !tasks.is_empty() => Step::TaskDone,
+            Some(()) = tasks.next(), if !tasks.is_empty() => Step::TaskDone,
             _ = shutdown.wait_for(|s| *s), if draining.is_none() => Step::Shutdown,
             _ = sleep_until_opt(deadline), if deadline.is_some() => Step::Deadline,
             _ = tokio::time::sleep_until(hello_deadline), if !established && draining.is_none() => Step::HelloTimeout,
@@ -353,7 +358,7 @@ pub(crate) async fn serve_connection(
             Step::Stream(Ok((send, recv))) => {
                 let ctx = Arc::clone(&ctx);
                 let abort = abort_rx.clone();
-                tasks.spawn(serve_request(ctx, send, recv, abort));
+                tasks.push(Box::pin(serve_request(ctx, send, recv, abort)));
             }
             Step::Stream(Err(e)) => {
                 tracing::debug!(%peer, error = %e, "connection ended");
@@ -379,7 +384,7 @@ pub(crate) async fn serve_connection(
                 // Grace period over: reset whatever is still being sent.
                 let _ = abort_tx.send(true);
                 let _ = tokio::time::timeout(Duration::from_secs(1), async {
-                    while tasks.join_next().await.is_some() {}
+                    while tasks.next().await.is_some() {}
                 })
                 .await;
                 let (c, r) = draining
@@ -407,8 +412,10 @@ pub(crate) async fn serve_connection(
         let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
         conn.close(code(c), reason.as_bytes());
     }
+    // The connection is closed: what is left of its requests can send
+    // nothing more, so dropping them cannot truncate a response.
     let _ = abort_tx.send(true);
-    tasks.shutdown().await;
+    drop(tasks);
     let stats = conn.stats();
     tracing::debug!(
         %peer,
@@ -423,6 +430,9 @@ pub(crate) async fn serve_connection(
         "connection ended"
     );
 }
+
+/// One request stream being served ([`serve_request`]).
+type RequestFuture = Pin<Box<dyn Future<Output = ()> + Send>>;
 
 async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {
     match deadline {
@@ -676,6 +686,9 @@ async fn serve_request(
     };
     let mut chunks = [Bytes::from(head), Bytes::from_owner(slice)];
     let written = tokio::select! {
+        // The write usually completes in its first poll: try it before
+        // registering with the abort signal.
+        biased;
         r = send.write_all_chunks(&mut chunks) => Some(r),
         _ = abort.wait_for(|a| *a) => None,
     };
@@ -693,24 +706,20 @@ async fn serve_request(
             RequestOutcome::Error
         }
         Some(Ok(())) => {
+            // The whole response is in QUIC's send buffer and the stream is
+            // finished: quinn delivers (and retransmits) it after `send` is
+            // dropped. The request is no longer in flight, and the client,
+            // which reads up to the FIN, may reuse its id at once. Buffered
+            // memory stays bounded by the stream limit: a stream counts
+            // against it until the client has acknowledged all of it. We do
+            // not wait for that acknowledgement (until 2026-11-22 every
+            // request did, to count a late STOP_SENDING as `cancelled`: a
+            // timer and a wake-up per request for a metric).
             let _ = send.finish();
-            // The whole response is written: the request is no longer in
-            // flight, and the client, which has read the whole body, may
-            // reuse its id at once (holding the id until QUIC's
-            // acknowledgement made such a reuse fail with DuplicateRequest).
-            // Buffered memory stays bounded by the stream limit: the stream
-            // is open until acknowledged. A late stop is still a cancellation.
-            drop(guard);
-            let acked = tokio::select! {
-                r = tokio::time::timeout(ACK_TIMEOUT, send.stopped()) => r.ok(),
-                _ = abort.wait_for(|a| *a) => None,
-            };
-            match acked {
-                Some(Ok(Some(_))) => RequestOutcome::Cancelled,
-                _ => RequestOutcome::Ok,
-            }
+            RequestOutcome::Ok
         }
     };
+    drop(guard);
     if outcome == RequestOutcome::Ok {
         est.ok.requests.inc();
         est.ok.bytes_sent.inc_by(size);

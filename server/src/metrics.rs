@@ -137,7 +137,7 @@ impl Metrics {
         let request_duration = HistogramVec::new(
             HistogramOpts::new(
                 "planet_request_duration_seconds",
-                "Time from reading a request to the end of its response",
+                "Time from reading a request to its last response byte handed to QUIC",
             )
             .buckets(exponential_buckets(0.0005, 2.5, 12)?),
             &["database"],
