@@ -18,6 +18,12 @@ mod server_bench;
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+/// mimalloc, like `planet-server` and `planet-view`: the client side of the
+/// benchmarks (quinn, hyper, the decoder) is allocation-heavy, and the
+/// figures should be those of the shipped binaries.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 #[command(
     name = "planet-bench",

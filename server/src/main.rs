@@ -16,6 +16,13 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use planet_server::{Server, ServerConfig, TlsSource};
 
+/// mimalloc instead of glibc's malloc: every request allocates a few small
+/// buffers (quinn's stream state, frames, the response head), and glibc's
+/// malloc/free took about 9 % of the server's CPU in the closed-loop
+/// benchmark (docs/BENCHMARKS.md, "Where the server's CPU goes now").
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Debug, Parser)]
 #[command(
     name = "planet-server",

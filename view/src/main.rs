@@ -16,6 +16,12 @@ use clap::{Args, Parser, Subcommand};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
+/// mimalloc, like `planet-server` and `planet-bench`: the network client
+/// (quinn) and the record decoder allocate per request, and the client
+/// figures in docs/BENCHMARKS.md are measured with this allocator.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 /// Where the planet comes from.
 #[derive(Debug, Clone, Args)]
 struct SourceArgs {
