@@ -41,7 +41,7 @@ fn code(c: u32) -> VarInt {
     VarInt::from_u32(c)
 }
 
-/// What request tasks need once the session is established.
+/// What request futures need once the session is established.
 struct Established {
     tenant: Arc<TenantRt>,
     db: Arc<MappedDb>,
@@ -75,7 +75,7 @@ impl OkMetrics {
     }
 }
 
-/// Per-connection state shared with request tasks.
+/// Per-connection state shared with request futures.
 struct ConnCtx {
     shared: Arc<Shared>,
     established: OnceLock<Established>,
