@@ -973,35 +973,24 @@ struct ClientSlot {
 
 async fn issue(c: &ClientSlot, k: usize, r: Req, uri: &str) -> Result<u64, String> {
     let _permit = c.sem.acquire().await.map_err(|e| e.to_string())?;
-    match &c.slot {
-        Slot::Quic(conn) => match conn.fetch(k as u64, r.offset, r.size).await {
-            Ok(b) if b.len() == r.size as usize => Ok(b.len() as u64),
-            Ok(b) => Err(format!("short body {} of {}", b.len(), r.size)),
-            Err(e) => Err(e.to_string()),
-        },
+    let res = match &c.slot {
+        Slot::Quic(conn) => Sender::Quic(conn.clone()).send(k, r, uri).await,
         Slot::H1(pool) => {
-            let mut h = pool
+            let h = pool
                 .lock()
                 .await
                 .pop()
                 .ok_or_else(|| "no free HTTP/1.1 connection".to_string())?;
-            let res = async {
-                h.ready().await.map_err(|e| e.to_string())?;
-                let req = range_request(uri, r).map_err(|e| e.to_string())?;
-                let resp = h.send_request(req).await.map_err(|e| e.to_string())?;
-                check_response(resp, r).await
+            let mut sender = Sender::H1(h);
+            let res = sender.send(k, r, uri).await;
+            if let Sender::H1(h) = sender {
+                pool.lock().await.push(h);
             }
-            .await;
-            pool.lock().await.push(h);
             res
         }
-        Slot::H2(h) => {
-            let mut h = h.clone();
-            let req = range_request(uri, r).map_err(|e| e.to_string())?;
-            let resp = h.send_request(req).await.map_err(|e| e.to_string())?;
-            check_response(resp, r).await
-        }
-    }
+        Slot::H2(h) => Sender::H2(h.clone()).send(k, r, uri).await,
+    };
+    res.map_err(|e| e.msg)
 }
 
 fn us(d: Duration) -> u32 {
@@ -1142,59 +1131,19 @@ async fn run_quic(
         return Ok(out);
     }
     let udp0 = UdpCounts::of(&conns);
-    let cpu0 = cpu_seconds_of(&pids);
-    let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
-    let start = Instant::now();
-    let cursor = new_cursor(list, args, start);
-    let mut set = tokio::task::JoinSet::new();
-    for c in &conns {
-        for _ in 0..args.concurrency.max(1) {
-            let c = c.clone();
-            let cursor = cursor.clone();
-            set.spawn(async move {
-                let mut st = LoopStats::default();
-                while let Some((i, r)) = cursor.take() {
-                    let t0 = Instant::now();
-                    match c.fetch(i as u64, r.offset, r.size).await {
-                        Ok(body) if body.len() == r.size as usize => {
-                            st.lat_us
-                                .push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
-                            st.bytes += body.len() as u64;
-                        }
-                        Ok(body) => st.error(format!("short body {} of {}", body.len(), r.size)),
-                        Err(e) => st.error(e.to_string()),
-                    }
-                }
-                st
-            });
-        }
+    let loops = conns
+        .iter()
+        .flat_map(|c| (0..args.concurrency.max(1)).map(|_| Sender::Quic(c.clone())))
+        .collect();
+    let mut r = closed_loop("QUIC", loops, "".into(), list, args, &pids, conns.len()).await?;
+    r.udp = Some(UdpCounts::of(&conns).since(&udp0));
+    if srv.pid().is_none() {
+        r.server_cpu = None;
     }
-    let mut all = LoopStats::default();
-    while let Some(r) = set.join_next().await {
-        all.merge(r?);
-    }
-    let wall = start.elapsed();
-    let cpu1 = cpu_seconds_of(&pids);
-    let client_cpu = proc_cpu_seconds(std::process::id()).unwrap_or(0.0) - self0;
-    let udp = UdpCounts::of(&conns).since(&udp0);
     for c in &conns {
         c.close();
     }
-    Ok(vec![RunResult {
-        label: "QUIC".into(),
-        requests: all.lat_us.len() as u64,
-        bytes: all.bytes,
-        errors: all.errors,
-        first_error: all.first_error,
-        wall,
-        latency: latency(&mut all.lat_us),
-        server_cpu: srv.pid().map(|_| cpu1 - cpu0),
-        connections: conns.len(),
-        client_cpu,
-        offered: None,
-        lag: None,
-        udp: Some(udp),
-    }])
+    Ok(vec![r])
 }
 
 // ---------------------------------------------------------------- nginx
@@ -1482,74 +1431,72 @@ async fn run_nginx(
         }
         return Ok(out);
     }
-    let cpu0 = cpu_seconds_of(&pids);
-    let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
-    let start = Instant::now();
-    let cursor = new_cursor(list, args, start);
     let uri: Arc<str> = if h2 {
         format!("https://localhost:{}/db", ng.addr.port()).into()
     } else {
         "/db".into()
     };
-    let mut set = tokio::task::JoinSet::new();
     let mut loops: Vec<Sender> = vec![];
     for s in senders {
         match s {
             Sender::H2(h) => loops.extend((0..conc).map(|_| Sender::H2(h.clone()))),
-            h1 => loops.push(h1),
+            other => loops.push(other),
         }
     }
-    for s in loops {
-        {
-            let mut s = Some(s);
-            let cursor = cursor.clone();
-            let uri = uri.clone();
-            set.spawn(async move {
-                let mut st = LoopStats::default();
-                while let Some((_, r)) = cursor.take() {
-                    let t0 = Instant::now();
-                    let req = match range_request(&uri, r) {
-                        Ok(q) => q,
-                        Err(e) => {
-                            st.error(e.to_string());
-                            continue;
+    Ok(vec![
+        closed_loop(label, loops, uri, list, args, &pids, n_conns).await?,
+    ])
+}
+
+/// The closed loop (throughput): one task per entry of `loops`, each
+/// sending its next request when the previous one has completed, until
+/// the run's cursor runs out. Server CPU is that of `pids`, client CPU this
+/// process's, both over the timed window.
+async fn closed_loop(
+    label: &str,
+    loops: Vec<Sender>,
+    uri: Arc<str>,
+    list: &Arc<Vec<Req>>,
+    args: &ServerArgs,
+    pids: &[u32],
+    connections: usize,
+) -> Result<RunResult> {
+    let cpu0 = cpu_seconds_of(pids);
+    let self0 = proc_cpu_seconds(std::process::id()).unwrap_or(0.0);
+    let start = Instant::now();
+    let cursor = new_cursor(list, args, start);
+    let mut set = tokio::task::JoinSet::new();
+    for mut sender in loops {
+        let cursor = cursor.clone();
+        let uri = uri.clone();
+        set.spawn(async move {
+            let mut st = LoopStats::default();
+            while let Some((i, r)) = cursor.take() {
+                let t0 = Instant::now();
+                match sender.send(i, r, &uri).await {
+                    Ok(n) => {
+                        st.lat_us.push(us(t0.elapsed()));
+                        st.bytes += n;
+                    }
+                    Err(SendError { msg, fatal }) => {
+                        st.error(msg);
+                        if fatal {
+                            break;
                         }
-                    };
-                    let resp = match &mut s {
-                        Some(Sender::H1(h)) => {
-                            if let Err(e) = h.ready().await {
-                                st.error(e.to_string());
-                                break;
-                            }
-                            h.send_request(req).await
-                        }
-                        Some(Sender::H2(h)) => h.send_request(req).await,
-                        None => break,
-                    };
-                    match resp {
-                        Ok(resp) => match check_response(resp, r).await {
-                            Ok(n) => {
-                                st.lat_us
-                                    .push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
-                                st.bytes += n;
-                            }
-                            Err(e) => st.error(e),
-                        },
-                        Err(e) => st.error(e.to_string()),
                     }
                 }
-                st
-            });
-        }
+            }
+            st
+        });
     }
     let mut all = LoopStats::default();
     while let Some(r) = set.join_next().await {
         all.merge(r?);
     }
     let wall = start.elapsed();
-    let cpu1 = cpu_seconds_of(&pids);
+    let cpu1 = cpu_seconds_of(pids);
     let client_cpu = proc_cpu_seconds(std::process::id()).unwrap_or(0.0) - self0;
-    Ok(vec![RunResult {
+    Ok(RunResult {
         label: label.into(),
         requests: all.lat_us.len() as u64,
         bytes: all.bytes,
@@ -1558,17 +1505,75 @@ async fn run_nginx(
         wall,
         latency: latency(&mut all.lat_us),
         server_cpu: Some(cpu1 - cpu0),
-        connections: n_conns,
+        connections,
         client_cpu,
         offered: None,
         lag: None,
         udp: None,
-    }])
+    })
 }
 
+/// A failed request of a closed loop; `fatal` ends the loop (its
+/// connection is unusable).
+struct SendError {
+    msg: String,
+    fatal: bool,
+}
+
+impl SendError {
+    fn of(e: impl ToString) -> SendError {
+        SendError {
+            msg: e.to_string(),
+            fatal: false,
+        }
+    }
+}
+
+/// One closed-loop request sender: a QUIC connection (one stream per
+/// request), an HTTP/1.1 keep-alive connection, or an HTTP/2 connection
+/// (one stream per request).
 enum Sender {
+    Quic(Connection),
     H1(H1Send),
     H2(H2Send),
+}
+
+impl Sender {
+    /// Sends request `i` (`r`) and returns the body length once the whole
+    /// response has arrived and matched the request.
+    async fn send(&mut self, i: usize, r: Req, uri: &str) -> Result<u64, SendError> {
+        let resp = match self {
+            Sender::Quic(c) => {
+                let body = c
+                    .fetch(i as u64, r.offset, r.size)
+                    .await
+                    .map_err(SendError::of)?;
+                if body.len() != r.size as usize {
+                    return Err(SendError::of(format!(
+                        "short body {} of {}",
+                        body.len(),
+                        r.size
+                    )));
+                }
+                return Ok(body.len() as u64);
+            }
+            Sender::H1(h) => {
+                h.ready().await.map_err(|e| SendError {
+                    msg: e.to_string(),
+                    fatal: true,
+                })?;
+                h.send_request(range_request(uri, r).map_err(SendError::of)?)
+                    .await
+            }
+            Sender::H2(h) => {
+                h.send_request(range_request(uri, r).map_err(SendError::of)?)
+                    .await
+            }
+        };
+        check_response(resp.map_err(SendError::of)?, r)
+            .await
+            .map_err(SendError::of)
+    }
 }
 
 /// What a `server` run measured.
