@@ -139,6 +139,16 @@ pub struct ServerArgs {
     /// Arrival process of the open-loop schedule.
     #[arg(long, value_enum, default_value = "poisson")]
     pub arrivals: Arrivals,
+    /// Open-loop mode: seconds of untimed warm-up at the first `--rate`
+    /// before the timed runs, on each side (0: none). Opening all the
+    /// connections at once inflates their RTT estimates (hundreds of
+    /// handshakes queue on two cores: 20–50 ms, up to 200 ms), and quinn
+    /// paces each connection's first responses at that RTT until enough
+    /// acknowledgements have corrected it (docs/BENCHMARKS.md, "The
+    /// open-loop tail was the connection storm"). The warm-up is printed,
+    /// not counted.
+    #[arg(long, default_value_t = 5.0)]
+    pub warmup: f64,
 }
 
 /// Arrival process of an open-loop run.
@@ -174,6 +184,7 @@ impl Default for ServerArgs {
             client_max_udp_payload: None,
             rate: vec![],
             arrivals: Arrivals::Poisson,
+            warmup: 5.0,
         }
     }
 }
@@ -740,6 +751,8 @@ pub struct RunResult {
     /// QUIC runs: datagrams of the window, from the client connections'
     /// quinn statistics.
     pub udp: Option<UdpCounts>,
+    /// An open-loop warm-up (`--warmup`): printed, not compared.
+    pub warmup: bool,
 }
 
 /// UDP datagram counts of the client's QUIC connections over a window.
@@ -1071,11 +1084,36 @@ async fn open_loop(
         offered: Some(rate),
         lag: Some(latency(&mut lag)),
         udp: None,
+        warmup: false,
     })
 }
 
-/// The open-loop schedules of a run: one per `--rate`.
-pub type Schedules = Vec<(f64, Arc<Vec<Arrival>>)>;
+/// The open-loop schedules of a run: an optional untimed warm-up, then
+/// one timed run per `--rate`.
+#[derive(Default)]
+pub struct Schedules {
+    /// Replayed first, printed, not counted.
+    pub warmup: Option<(f64, Arc<Vec<Arrival>>)>,
+    /// The timed runs.
+    pub runs: Vec<(f64, Arc<Vec<Arrival>>)>,
+}
+
+impl Schedules {
+    fn is_empty(&self) -> bool {
+        self.runs.is_empty()
+    }
+}
+
+/// Smoothed RTT estimates of the client connections (quinn's, in ms):
+/// p50, p90 and max.
+fn rtt_estimates(conns: &[Connection]) -> String {
+    let mut v: Vec<u32> = conns.iter().map(|c| us(c.quinn().rtt())).collect();
+    if v.is_empty() {
+        return "none".into();
+    }
+    let l = latency(&mut v);
+    format!("p50 {} p90 {} max {}", ms(l.p50), ms(l.p90), ms(l.max))
+}
 
 async fn run_quic(
     srv: &ServerUnderTest,
@@ -1106,7 +1144,32 @@ async fn run_quic(
                 .collect(),
         );
         let mut out = vec![];
-        for (rate, sched) in scheds {
+        println!(
+            "QUIC client RTT estimates after connecting: {}",
+            rtt_estimates(&conns)
+        );
+        if let Some((rate, sched)) = &scheds.warmup {
+            let mut r = open_loop(
+                "QUIC",
+                slots.clone(),
+                list,
+                sched.clone(),
+                *rate,
+                "".into(),
+                &pids,
+                conns.len(),
+            )
+            .await?;
+            r.label = "QUIC warm-up (not counted)".into();
+            r.warmup = true;
+            r.print();
+            out.push(r);
+            println!(
+                "QUIC client RTT estimates after the warm-up: {}",
+                rtt_estimates(&conns)
+            );
+        }
+        for (rate, sched) in &scheds.runs {
             let udp0 = UdpCounts::of(&conns);
             let mut r = open_loop(
                 "QUIC",
@@ -1414,7 +1477,24 @@ async fn run_nginx(
         }
         let slots = Arc::new(slots);
         let mut out = vec![];
-        for (rate, sched) in scheds {
+        if let Some((rate, sched)) = &scheds.warmup {
+            let mut r = open_loop(
+                label,
+                slots.clone(),
+                list,
+                sched.clone(),
+                *rate,
+                uri.clone(),
+                &pids,
+                n_conns,
+            )
+            .await?;
+            r.label = format!("{label} warm-up (not counted)");
+            r.warmup = true;
+            r.print();
+            out.push(r);
+        }
+        for (rate, sched) in &scheds.runs {
             out.push(
                 open_loop(
                     label,
@@ -1510,6 +1590,7 @@ async fn closed_loop(
         offered: None,
         lag: None,
         udp: None,
+        warmup: false,
     })
 }
 
@@ -1583,13 +1664,20 @@ pub struct ServerReport {
     pub quic: Vec<RunResult>,
     /// The nginx sides.
     pub nginx: Vec<RunResult>,
+    /// The open-loop warm-ups of every side (already printed).
+    pub warmups: Vec<RunResult>,
 }
 
 /// `planet-bench server`.
 pub fn run(args: ServerArgs) -> Result<()> {
     let report = bench(&args)?;
     let mut failed = false;
-    for n in report.quic.iter().chain(&report.nginx) {
+    for n in report
+        .quic
+        .iter()
+        .chain(&report.nginx)
+        .chain(&report.warmups)
+    {
         failed |= n.errors > 0;
     }
     if failed {
@@ -1637,7 +1725,7 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
         .enable_all()
         .build()?;
     let reqs = Arc::new(list.reqs.clone());
-    let scheds: Schedules = args
+    let runs = args
         .rate
         .iter()
         .map(|&rate| {
@@ -1648,11 +1736,27 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
             (rate, Arc::new(s))
         })
         .collect();
+    let warmup = match args.rate.first() {
+        Some(&rate) if args.warmup > 0.0 => {
+            let n = (rate * args.warmup).round().max(1.0) as usize;
+            // Other arrival times than the timed runs' (same request list).
+            let s = schedule(rate, n, args.clients, !args.seed, args.arrivals);
+            Some((rate, Arc::new(s)))
+        }
+        _ => None,
+    };
+    let scheds = Schedules { warmup, runs };
     if !scheds.is_empty() {
         println!(
             "open loop ({:?} arrivals, latency from the scheduled send time): rates {:?} req/s, \
-             at most {} outstanding per client",
-            args.arrivals, args.rate, args.concurrency
+             at most {} outstanding per client, {}",
+            args.arrivals,
+            args.rate,
+            args.concurrency,
+            match &scheds.warmup {
+                Some((rate, _)) => format!("after {} s of warm-up at {rate} req/s", args.warmup),
+                None => "no warm-up".into(),
+            }
         );
     }
     println!(
@@ -1672,7 +1776,12 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
         args.client_max_udp_payload,
         args.server_threads,
     )?;
-    let quic = rt.block_on(run_quic(&srv, &reqs, args, &scheds))?;
+    let mut warmups = vec![];
+    let (warm, quic): (Vec<_>, Vec<_>) = rt
+        .block_on(run_quic(&srv, &reqs, args, &scheds))?
+        .into_iter()
+        .partition(|r| r.warmup);
+    warmups.extend(warm);
     srv.stop();
     for q in &quic {
         q.print();
@@ -1689,6 +1798,8 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
         };
         for &h2 in modes {
             let rs = rt.block_on(run_nginx(&ng, &reqs, args, h2, &scheds))?;
+            let (warm, rs): (Vec<_>, Vec<_>) = rs.into_iter().partition(|r| r.warmup);
+            warmups.extend(warm);
             for r in rs {
                 r.print();
                 nginx.push(r);
@@ -1715,7 +1826,11 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
     }
     println!("load average {} (after)", loadavg());
     rt.shutdown_timeout(Duration::from_secs(2));
-    Ok(ServerReport { quic, nginx })
+    Ok(ServerReport {
+        quic,
+        nginx,
+        warmups,
+    })
 }
 
 #[cfg(test)]
@@ -1797,10 +1912,17 @@ mod tests {
             server: ServerMode::InProcess,
             client_threads: Some(2),
             rate: vec![200.0, 400.0],
+            warmup: 0.25,
             ..ServerArgs::default()
         };
         let r = bench(&args).unwrap();
         assert_eq!(r.quic.len(), 2);
+        // 0.25 s of warm-up at the first rate, reported apart.
+        assert_eq!(r.warmups.len(), 1);
+        assert_eq!(
+            (r.warmups[0].requests, r.warmups[0].offered),
+            (50, Some(200.0))
+        );
         for (q, want) in r.quic.iter().zip([200u64, 400]) {
             assert_eq!(q.errors, 0, "{:?}", q.first_error);
             assert_eq!(q.requests, want);
