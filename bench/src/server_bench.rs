@@ -1104,6 +1104,37 @@ impl Schedules {
     }
 }
 
+/// Replays the warm-up schedule of `scheds`, if any, on `slots`; prints
+/// the result and returns it marked as a warm-up.
+async fn warm_up(
+    label: &str,
+    slots: &Arc<Vec<ClientSlot>>,
+    list: &Arc<Vec<Req>>,
+    scheds: &Schedules,
+    uri: &str,
+    pids: &[u32],
+    connections: usize,
+) -> Result<Option<RunResult>> {
+    let Some((rate, sched)) = &scheds.warmup else {
+        return Ok(None);
+    };
+    let mut r = open_loop(
+        label,
+        slots.clone(),
+        list,
+        sched.clone(),
+        *rate,
+        uri.into(),
+        pids,
+        connections,
+    )
+    .await?;
+    r.label = format!("{label} warm-up (not counted)");
+    r.warmup = true;
+    r.print();
+    Ok(Some(r))
+}
+
 /// Smoothed RTT estimates of the client connections (quinn's, in ms):
 /// p50, p90 and max.
 fn rtt_estimates(conns: &[Connection]) -> String {
@@ -1148,21 +1179,7 @@ async fn run_quic(
             "QUIC client RTT estimates after connecting: {}",
             rtt_estimates(&conns)
         );
-        if let Some((rate, sched)) = &scheds.warmup {
-            let mut r = open_loop(
-                "QUIC",
-                slots.clone(),
-                list,
-                sched.clone(),
-                *rate,
-                "".into(),
-                &pids,
-                conns.len(),
-            )
-            .await?;
-            r.label = "QUIC warm-up (not counted)".into();
-            r.warmup = true;
-            r.print();
+        if let Some(r) = warm_up("QUIC", &slots, list, scheds, "", &pids, conns.len()).await? {
             out.push(r);
             println!(
                 "QUIC client RTT estimates after the warm-up: {}",
@@ -1477,23 +1494,7 @@ async fn run_nginx(
         }
         let slots = Arc::new(slots);
         let mut out = vec![];
-        if let Some((rate, sched)) = &scheds.warmup {
-            let mut r = open_loop(
-                label,
-                slots.clone(),
-                list,
-                sched.clone(),
-                *rate,
-                uri.clone(),
-                &pids,
-                n_conns,
-            )
-            .await?;
-            r.label = format!("{label} warm-up (not counted)");
-            r.warmup = true;
-            r.print();
-            out.push(r);
-        }
+        out.extend(warm_up(label, &slots, list, scheds, &uri, &pids, n_conns).await?);
         for (rate, sched) in &scheds.runs {
             out.push(
                 open_loop(
