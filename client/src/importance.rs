@@ -100,16 +100,6 @@ impl Importance {
     }
 }
 
-/// [`Importance::if_may_merge`] for quality factor `qf`.
-pub fn merge_importance(
-    distance: f64,
-    block_radius: f64,
-    block_width: f64,
-    qf: f64,
-) -> Option<f64> {
-    Importance::new(qf).if_may_merge(distance, block_radius, block_width)
-}
-
 /// The LOD to render: `ceil(importance)` clamped to `[0, 1]`
 /// (`ceil(x) ≥ 1` exactly when `x > 0`, also false for NaN).
 pub fn selected_lod(importance: f64) -> u8 {
@@ -201,7 +191,7 @@ mod tests {
     }
 
     proptest! {
-        /// `merge_importance` is `importance` wherever a merge may be
+        /// `Importance::if_may_merge` is `importance` wherever a merge may be
         /// wanted, and `None` only where it is not (also around quality 1).
         #[test]
         fn merge_importance_agrees(d in -1e7f64..1e13, r in 0.0f64..1e7, w in prop_oneof![Just(8.0), Just(64.0)], qf in prop_oneof![Just(0.0), 0.0f64..1e12, Just(f64::INFINITY)], ulps in -4i64..4) {
@@ -214,7 +204,7 @@ mod tests {
             };
             for d in [d, d1] {
                 let imp = importance(d, r, w, qf);
-                match merge_importance(d, r, w, qf) {
+                match Importance::new(qf).if_may_merge(d, r, w) {
                     Some(m) => prop_assert_eq!(m.to_bits(), imp.to_bits()),
                     None => prop_assert!(!wants_merge(imp), "{} {} {} {}", d, r, w, qf),
                 }

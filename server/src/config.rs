@@ -153,7 +153,8 @@ pub struct ServerConfig {
     /// one datagram instead of five or six, as kernel TCP uses 64 kB
     /// loopback segments, and cuts the server's CPU per request by a
     /// quarter, but gave occasional 25–200 ms stalls (without packet loss)
-    /// in open-loop runs; see docs/BENCHMARKS.md.
+    /// in open-loop runs on a loaded machine, not reproduced on a quiet one
+    /// and not explained; see docs/BENCHMARKS.md.
     pub max_udp_payload: u16,
     /// Congestion window of a new connection, bytes (QUIC's default is
     /// 10 packets, about 14.7 kB). The Welcome carries the database header

@@ -129,30 +129,21 @@ impl AsyncUdpSocket for GsoLimit {
     }
 }
 
-/// A quinn endpoint on a socket from [`bind`], wrapped in [`GsoLimit`]:
-/// `server` is `Some` for the server, `None` for a client endpoint.
-pub fn endpoint(
-    endpoint_config: quinn::EndpointConfig,
-    server: Option<quinn::ServerConfig>,
+/// A quinn server endpoint on a socket from [`bind`], wrapped in
+/// [`GsoLimit`].
+pub fn server_endpoint(
+    config: quinn::ServerConfig,
     addr: SocketAddr,
 ) -> io::Result<quinn::Endpoint> {
     let runtime = quinn::default_runtime()
         .ok_or_else(|| io::Error::other("no async runtime for the QUIC endpoint"))?;
     let socket = runtime.wrap_udp_socket(bind(addr)?)?;
     quinn::Endpoint::new_with_abstract_socket(
-        endpoint_config,
-        server,
+        quinn::EndpointConfig::default(),
+        Some(config),
         Arc::new(GsoLimit::new(socket)),
         runtime,
     )
-}
-
-/// A quinn server endpoint on a socket from [`bind`] (see [`endpoint`]).
-pub fn server_endpoint(
-    config: quinn::ServerConfig,
-    addr: SocketAddr,
-) -> io::Result<quinn::Endpoint> {
-    endpoint(quinn::EndpointConfig::default(), Some(config), addr)
 }
 
 #[cfg(test)]
