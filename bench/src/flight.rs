@@ -1,4 +1,13 @@
-//! `planet-bench flight`: error against run time and bytes, per link.
+//! `planet-bench flight`: error against run time and bytes, per link and
+//! per client policy, in one invocation.
+//!
+//! Every (link, policy) run flies the same trajectory against a fresh
+//! in-process server through a fresh simulated link with the same seeds, so
+//! the policies (`--policy`: ours, thesis, cesium, breadth; see
+//! `client/src/refinement.rs`) differ only in how they schedule. Outputs in
+//! `--out`: a CSV per run, one PNG per link with every policy overlaid
+//! (max and mean SSE and true error against time, max SSE against bytes),
+//! `summary.md` and `summary.json` (one object per run).
 
 use crate::plot;
 use crate::thread_cpu;
@@ -6,13 +15,13 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use planet_client::net::{Connection, SessionConfig};
 use planet_client::quality::{QualityConfig, QualityMode};
-use planet_client::request_queue::QueueConfig;
 use planet_client::streaming::StreamingClient;
 use planet_client::trajectory::Trajectory;
-use planet_client::ClientConfig;
+use planet_client::{Client, ClientConfig, Policy};
 use planet_linksim::{Link, LinkConfig};
 use planet_preprocess::db::Sampler;
 use planet_tests::{client_surface_elevation, probe_points, runtime, LocalServer};
+use serde::Serialize;
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::io::Write as _;
@@ -31,9 +40,23 @@ pub struct FlightArgs {
     /// Levels of the procedural database.
     #[arg(long, default_value_t = 6)]
     pub levels: u8,
-    /// Built-in trajectory name (rainier, everest, orbit, static-low) or file.
+    /// Detail regions of the procedural database built with --procedural
+    /// (`LAT,LON,RADIUS_KM,LEVEL`, repeatable; see `planet-build build
+    /// --detail`).
+    #[arg(long = "detail")]
+    pub detail: Vec<String>,
+    /// Built-in trajectory name (rainier, everest, orbit, static-low,
+    /// low-pass) or file.
     #[arg(long, default_value = "rainier")]
     pub trajectory: String,
+    /// Client policy (ours, thesis, cesium, breadth); repeat to run several
+    /// on the same database, link and trajectory.
+    #[arg(long = "policy", default_value = "ours")]
+    pub policies: Vec<Policy>,
+    /// Pixel tolerance of the screen-space error, for every policy that has
+    /// one (Cesium's maximumScreenSpaceError is set to it too).
+    #[arg(long, default_value_t = planet_client::refinement::DEFAULT_MAX_SSE_PX)]
+    pub max_sse: f64,
     /// Link specification (linksim syntax, e.g. "1mbit,100ms,2%loss" or
     /// "loopback"); repeat for several runs.
     #[arg(long = "link", required = true)]
@@ -44,21 +67,18 @@ pub struct FlightArgs {
     /// Output directory (CSV, PNG, summary).
     #[arg(long)]
     pub out: PathBuf,
-    /// Quality-factor controller: regulate to this many triangles per frame
-    /// (default: fixed QF).
-    #[arg(long)]
-    pub budget_triangles: Option<f64>,
-    /// Initial (and, without --budget-triangles, fixed) quality factor
-    /// (default: the client's default).
-    #[arg(long)]
-    pub qf: Option<f64>,
-    /// Request queue size (requests in flight at most).
-    #[arg(long)]
-    pub queue: Option<usize>,
+    /// The thesis policy's triangle budget per frame (its QF law, thesis
+    /// §4.6: 2 million triangles on the high-end client).
+    #[arg(long, default_value_t = THESIS_TRIANGLES)]
+    pub thesis_triangles: f64,
     /// Do not filter requests by the view predicted for their arrival
     /// (client/src/view_prediction.rs), for A/B comparisons.
     #[arg(long)]
     pub no_predict: bool,
+    /// Skip the bytes-needed estimate (an instant-delivery flight over the
+    /// database file).
+    #[arg(long)]
+    pub no_needed: bool,
     /// A returning client: connect once through the same link first (same
     /// TLS configuration and options), keep the session ticket and the
     /// address-validation token, close; the measured connection then
@@ -81,6 +101,9 @@ pub struct FlightArgs {
     #[arg(long)]
     pub label: Option<String>,
 }
+
+/// The thesis's triangle budget on its high-end client (§4.6, 2 M).
+pub const THESIS_TRIANGLES: f64 = 2.0e6;
 
 /// One frame's measurements.
 #[derive(Debug, Clone, Default)]
@@ -107,29 +130,32 @@ pub struct Row {
     pub connected: bool,
 }
 
-/// What the summary table shows for one link.
+/// What the summary table shows for one run.
 #[derive(Debug, Clone)]
 pub struct Summary {
     pub label: String,
+    pub policy: Policy,
+    /// ∫ mean SSE dt and ∫ max SSE dt over the flight (px·s).
+    pub error_integral: f64,
+    pub max_sse_integral: f64,
+    /// Per stop (static segment): its start and the time to max SSE ≤ the
+    /// tolerance from it (`None`: not reached during the stop).
+    pub stops: Vec<(f64, Option<f64>)>,
+    pub wasted_pct: f64,
+    pub needed_over_delivered: Option<f64>,
     pub first_frame_ms: f64,
     /// The measured connection resumed a session and its Hello went as
     /// 0-RTT early data (`--warm`).
     pub zero_rtt: bool,
     pub connect_ms: f64,
-    pub sse_start_s: Option<f64>,
-    pub sse_stop_s: Option<f64>,
-    pub sse_final_stop_s: Option<f64>,
     pub bytes: u64,
     pub link_bytes_down: u64,
     pub relevant_pct: f64,
     /// Forced neighbour refines not drawn on arrival (part of the rest).
     pub forced_pct: f64,
-    pub after_cancel_pct: f64,
-    pub dropped_pct: f64,
     pub cancels: u64,
     pub requests: u64,
     pub cpu_mean_ms: f64,
-    pub cpu_max_ms: f64,
     pub cpu_p99_ms: f64,
     pub final_sse_max: f64,
     pub final_err_max: f64,
@@ -154,11 +180,11 @@ fn static_segments(t: &Trajectory) -> Vec<(f64, f64)> {
     out
 }
 
-/// Seconds from `start` until max SSE ≤ 1 px (within `[start, end]`).
-fn time_to_sse(rows: &[Row], start: f64, end: f64) -> Option<f64> {
+/// Seconds from `start` until max SSE ≤ `tol` px (within `[start, end]`).
+fn time_to_sse(rows: &[Row], start: f64, end: f64, tol: f64) -> Option<f64> {
     rows.iter()
         .filter(|r| r.t >= start - 1e-9 && r.t <= end + 1e-9)
-        .find(|r| r.sse_max <= 1.0)
+        .find(|r| r.sse_max <= tol)
         .map(|r| r.t - start)
 }
 
@@ -166,6 +192,32 @@ fn link_name(spec: &str) -> String {
     spec.chars()
         .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
         .collect()
+}
+
+/// One line of `summary.json`.
+#[derive(Debug, Serialize)]
+struct JsonSummary<'a> {
+    link: &'a str,
+    policy: &'a str,
+    trajectory: &'a str,
+    max_sse_px: f64,
+    error_integral_px_s: f64,
+    max_sse_integral_px_s: f64,
+    stops_s: Vec<f64>,
+    time_to_1px_after_stops_s: Vec<Option<f64>>,
+    bytes: u64,
+    link_bytes: u64,
+    relevant_ratio: f64,
+    wasted_ratio: f64,
+    requests: u64,
+    cancels: u64,
+    needed_over_delivered: Option<f64>,
+    needed_bytes: Option<u64>,
+    first_frame_ms: f64,
+    final_sse_max_px: f64,
+    cpu_mean_ms: f64,
+    cpu_p99_ms: f64,
+    frames_late: u64,
 }
 
 pub fn run(a: FlightArgs) -> Result<()> {
@@ -177,11 +229,16 @@ pub fn run(a: FlightArgs) -> Result<()> {
             );
         }
         eprintln!(
-            "building a procedural database ({} levels) at {}",
+            "building a procedural database ({} levels{}) at {}",
             a.levels,
+            if a.detail.is_empty() {
+                String::new()
+            } else {
+                format!(", detail {}", a.detail.join(" "))
+            },
             a.db.display()
         );
-        planet_tests::build_procedural_db(&a.db, a.levels, 1)?;
+        planet_tests::build_procedural_db_detail(&a.db, a.levels, 1, &a.detail)?;
     }
     let traj = match Trajectory::builtin(&a.trajectory) {
         Some(t) => t,
@@ -189,49 +246,158 @@ pub fn run(a: FlightArgs) -> Result<()> {
             .with_context(|| format!("trajectory {}", a.trajectory))?,
     };
     std::fs::create_dir_all(&a.out)?;
+    let needed = if a.no_needed {
+        None
+    } else {
+        let t0 = Instant::now();
+        let n = needed_bytes(&a, &traj)?;
+        eprintln!(
+            "bytes needed for ≤ {} px along the path (instant delivery): {:.2} MB ({:.1} s)",
+            a.max_sse,
+            n as f64 / 1e6,
+            t0.elapsed().as_secs_f64()
+        );
+        Some(n)
+    };
     let mut summaries = Vec::new();
+    let mut json = Vec::new();
     for spec in &a.links {
-        let s = run_link(&a, &traj, spec)?;
-        print_summary(std::slice::from_ref(&s));
-        summaries.push(s);
+        let mut runs: Vec<(Policy, Vec<Row>)> = Vec::new();
+        for &policy in &a.policies {
+            let (s, rows) = run_link(&a, &traj, spec, policy, needed)?;
+            print_summary(std::slice::from_ref(&s));
+            runs.push((policy, rows));
+            summaries.push(s);
+        }
+        let label = a.label.clone().unwrap_or_else(|| spec.to_string());
+        plot::policies_plot(
+            &a.out.join(format!("flight-{}.png", link_name(&label))),
+            &format!("{} — {label} — max SSE {} px", a.trajectory, a.max_sse),
+            &runs,
+            a.max_sse,
+        )?;
+    }
+    for s in &summaries {
+        json.push(JsonSummary {
+            link: &s.label,
+            policy: s.policy.name(),
+            trajectory: &a.trajectory,
+            max_sse_px: a.max_sse,
+            error_integral_px_s: s.error_integral,
+            max_sse_integral_px_s: s.max_sse_integral,
+            stops_s: s.stops.iter().map(|x| x.0).collect(),
+            time_to_1px_after_stops_s: s.stops.iter().map(|x| x.1).collect(),
+            bytes: s.bytes,
+            link_bytes: s.link_bytes_down,
+            relevant_ratio: s.relevant_pct / 100.0,
+            wasted_ratio: s.wasted_pct / 100.0,
+            requests: s.requests,
+            cancels: s.cancels,
+            needed_over_delivered: s.needed_over_delivered,
+            needed_bytes: needed,
+            first_frame_ms: s.first_frame_ms,
+            final_sse_max_px: s.final_sse_max,
+            cpu_mean_ms: s.cpu_mean_ms,
+            cpu_p99_ms: s.cpu_p99_ms,
+            frames_late: s.frames_late,
+        });
     }
     let table = summary_table(&summaries);
     println!("\n{table}");
     let mut f = std::fs::File::create(a.out.join("summary.md"))?;
     writeln!(f, "{table}")?;
+    std::fs::write(
+        a.out.join("summary.json"),
+        serde_json::to_string_pretty(&json)?,
+    )?;
     Ok(())
 }
 
-fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
+/// The client configuration of `policy` for this benchmark: the policy's
+/// own defaults (`ClientConfig::for_policy`), the thesis with its QF law
+/// (a triangle budget).
+fn client_config(a: &FlightArgs, policy: Policy) -> ClientConfig {
+    let mut cfg = ClientConfig::for_policy(policy, a.max_sse);
+    if a.no_predict {
+        cfg.predict_view = false;
+    }
+    if policy == Policy::Thesis {
+        cfg.quality = QualityConfig {
+            mode: QualityMode::TriangleBudget(a.thesis_triangles),
+            ..cfg.quality
+        };
+    }
+    cfg
+}
+
+/// Bytes of every record the default policy needs to reach the tolerance
+/// along the trajectory when the link is not the limit: the flight replayed
+/// every half second over the database file with every request answered at
+/// once, to convergence at each sample, counting each record once.
+fn needed_bytes(a: &FlightArgs, traj: &Trajectory) -> Result<u64> {
+    let file = std::fs::read(&a.db).with_context(|| format!("reading {}", a.db.display()))?;
+    let sampler = Sampler::open(&a.db)?;
+    let header = sampler.header().clone();
+    let datum = header.datum;
+    let cfg = ClientConfig {
+        decode_threads: 0,
+        tree_ops_per_frame: 4096,
+        ..ClientConfig::for_policy(Policy::Ours, a.max_sse)
+    };
+    let mut cfg = cfg;
+    cfg.queue.max_in_flight = 100_000;
+    cfg.link_window = false;
+    cfg.predict_view = false;
+    let mut client = Client::new(header, cfg)?;
+    let mut seen: std::collections::HashSet<(u64, u32)> = Default::default();
+    let mut total = 0u64;
+    let duration = a.duration.unwrap_or(traj.duration()).min(traj.duration());
+    let steps = (duration / 0.5).ceil() as usize;
+    let aspect = 16.0 / 9.0;
+    let fov = 60f64.to_radians();
+    for k in 0..=steps {
+        let t = (k as f64 * 0.5).min(duration);
+        let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
+        for _ in 0..400 {
+            let out = client.frame(&camera, 1.0 / a.fps);
+            let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
+            for s in &out.send {
+                let (o, n) = (s.record.offset as usize, s.record.size as usize);
+                let bytes = file
+                    .get(o..o + n)
+                    .with_context(|| format!("record at {o} + {n} outside the file"))?;
+                if seen.insert((s.record.offset, s.record.size)) {
+                    total += n as u64;
+                }
+                client.deliver(s.id, Ok(bytes.to_vec()));
+            }
+            if !busy && client.queue().in_flight() == 0 {
+                break;
+            }
+        }
+    }
+    Ok(total)
+}
+
+fn run_link(
+    a: &FlightArgs,
+    traj: &Trajectory,
+    spec: &str,
+    policy: Policy,
+    needed: Option<u64>,
+) -> Result<(Summary, Vec<Row>)> {
     let cfg: LinkConfig = spec.parse().with_context(|| format!("link {spec:?}"))?;
     let label = a.label.clone().unwrap_or_else(|| spec.to_string());
-    eprintln!("== {label}: {}", a.db.display());
+    eprintln!("== {label} / {policy}: {}", a.db.display());
     let rt = runtime(2)?;
     let server = LocalServer::start(rt.handle(), &a.db)?;
+    let bandwidth = cfg.bandwidth_bps;
     let link = rt.block_on(Link::start(
         server.addr(),
         cfg.clone().with_seed(1),
         cfg.with_seed(2),
     ))?;
-    let mut client_cfg = ClientConfig {
-        predict_view: !a.no_predict,
-        ..ClientConfig::default()
-    };
-    if let Some(q) = a.queue {
-        client_cfg.queue = QueueConfig {
-            max_in_flight: q,
-            ..client_cfg.queue
-        };
-    }
-    if let Some(qf) = a.qf {
-        client_cfg.quality.initial = qf;
-    }
-    if let Some(b) = a.budget_triangles {
-        client_cfg.quality = QualityConfig {
-            mode: QualityMode::TriangleBudget(b),
-            ..client_cfg.quality
-        };
-    }
+    let client_cfg = client_config(a, policy);
     let sampler = Sampler::open(&a.db)?;
     let datum = sampler.header().datum;
     let aspect = 16.0 / 9.0;
@@ -364,55 +530,53 @@ fn run_link(a: &FlightArgs, traj: &Trajectory, spec: &str) -> Result<Summary> {
     drop(server);
 
     let name = link_name(&label);
-    write_csv(&a.out.join(format!("flight-{name}.csv")), &rows)?;
-    plot::flight_plot(
-        &a.out.join(format!("flight-{name}.png")),
-        &format!("{} — {label}", a.trajectory),
-        &rows,
-    )?;
+    write_csv(&a.out.join(format!("flight-{name}-{policy}.csv")), &rows)?;
 
     let segs = static_segments(traj);
-    let seg_start = segs.first().copied();
-    // The first stop after the trajectory moved, and the last stop.
-    let moved: Vec<(f64, f64)> = segs
+    let tol = a.max_sse;
+    let stops: Vec<(f64, Option<f64>)> = segs
         .iter()
-        .copied()
-        .filter(|s| seg_start.is_none_or(|f| s.0 > f.0) && s.1 - s.0 >= 5.0)
+        .filter(|s| s.0 < duration)
+        .map(|s| (s.0, time_to_sse(&rows, s.0, s.1.min(duration), tol)))
         .collect();
+    let dt = 1.0 / a.fps;
+    let error_integral: f64 = rows.iter().map(|r| r.sse_mean * dt).sum();
+    let max_sse_integral: f64 = rows.iter().map(|r| r.sse_max * dt).sum();
+    let needed_over_delivered = match (needed, bandwidth) {
+        (Some(n), Some(bps)) if duration > 0.0 => Some(n as f64 / (bps as f64 / 8.0 * duration)),
+        _ => None,
+    };
     let mut cpu: Vec<f64> = rows.iter().map(|r| r.cpu_ms).collect();
     cpu.sort_by(f64::total_cmp);
     let p99 = cpu[((cpu.len() as f64 * 0.99) as usize).min(cpu.len() - 1)];
-    let b = counters.bytes_received.max(1) as f64;
     let lastrow = rows.last().cloned().unwrap_or_default();
-    Ok(Summary {
-        label,
-        first_frame_ms,
-        connect_ms,
-        sse_start_s: seg_start.and_then(|s| time_to_sse(&rows, s.0, s.1.min(duration))),
-        sse_stop_s: moved
-            .first()
-            .and_then(|s| time_to_sse(&rows, s.0, s.1.min(duration))),
-        sse_final_stop_s: moved
-            .last()
-            .filter(|_| moved.len() > 1)
-            .and_then(|s| time_to_sse(&rows, s.0, s.1.min(duration))),
-        bytes: counters.bytes_received,
-        link_bytes_down: link_stats.bytes_down - warm_up_bytes,
-        zero_rtt,
-        relevant_pct: 100.0 * totals.relevant_ratio(),
-        forced_pct: 100.0 * totals.forced_ratio(),
-        after_cancel_pct: 100.0 * counters.bytes_after_cancel as f64 / b,
-        dropped_pct: 100.0 * totals.bytes_dropped as f64 / b,
-        cancels: counters.cancels,
-        requests: counters.requests,
-        cpu_mean_ms: cpu.iter().sum::<f64>() / cpu.len() as f64,
-        cpu_max_ms: cpu.last().copied().unwrap_or(0.0),
-        cpu_p99_ms: p99,
-        final_sse_max: lastrow.sse_max,
-        final_err_max: lastrow.err_max,
-        frames_late,
-        frames,
-    })
+    Ok((
+        Summary {
+            label,
+            policy,
+            error_integral,
+            max_sse_integral,
+            stops,
+            wasted_pct: 100.0 * totals.wasted_ratio(),
+            needed_over_delivered,
+            first_frame_ms,
+            connect_ms,
+            bytes: counters.bytes_received,
+            link_bytes_down: link_stats.bytes_down - warm_up_bytes,
+            zero_rtt,
+            relevant_pct: 100.0 * totals.relevant_ratio(),
+            forced_pct: 100.0 * totals.forced_ratio(),
+            cancels: counters.cancels,
+            requests: counters.requests,
+            cpu_mean_ms: cpu.iter().sum::<f64>() / cpu.len() as f64,
+            cpu_p99_ms: p99,
+            final_sse_max: lastrow.sse_max,
+            final_err_max: lastrow.err_max,
+            frames_late,
+            frames,
+        },
+        rows,
+    ))
 }
 
 /// One connection through the link that is closed again once the server's
@@ -469,42 +633,47 @@ fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
     Ok(())
 }
 
-fn fmt_s(v: Option<f64>) -> String {
-    v.map_or("not reached".into(), |s| format!("{s:.2} s"))
-}
-
 pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| link | first frame (connect) | SSE ≤ 1 px after start | after 1st stop | after last stop | bytes | link bytes down | relevant (forced neighbours) | after cancel | dropped | requests / cancels | CPU/frame mean / p99 / max | final max SSE / true err | late frames |"
+        "| link | policy | ∫ mean SSE dt | ∫ max SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
+        let stops: Vec<String> = s
+            .stops
+            .iter()
+            .map(|(at, x)| match x {
+                Some(v) => format!("{at:.0}s: {v:.2}"),
+                None => format!("{at:.0}s: —"),
+            })
+            .collect();
         let _ = writeln!(
             t,
-            "| {}{} | {:.0} ms ({:.0} ms) | {} | {} | {} | {:.2} MB | {:.2} MB | {:.2} % ({:.2} %) | {:.2} % | {:.2} % | {} / {} | {:.3} / {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {}{} | {} | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
-            s.first_frame_ms,
-            s.connect_ms,
-            fmt_s(s.sse_start_s),
-            fmt_s(s.sse_stop_s),
-            fmt_s(s.sse_final_stop_s),
+            s.policy,
+            s.error_integral,
+            s.max_sse_integral,
+            stops.join(", "),
             s.bytes as f64 / 1e6,
             s.link_bytes_down as f64 / 1e6,
+            s.needed_over_delivered
+                .map_or("—".into(), |r| format!("{r:.1}×")),
             s.relevant_pct,
             s.forced_pct,
-            s.after_cancel_pct,
-            s.dropped_pct,
+            s.wasted_pct,
             s.requests,
             s.cancels,
+            s.first_frame_ms,
+            s.connect_ms,
             s.cpu_mean_ms,
             s.cpu_p99_ms,
-            s.cpu_max_ms,
             s.final_sse_max,
             s.final_err_max,
             s.frames_late,

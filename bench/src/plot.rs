@@ -17,11 +17,25 @@ fn register() {
 }
 
 const FLOOR_PX: f64 = 0.01;
-const FLOOR_M: f64 = 0.01;
 
-/// Four panels: max/mean SSE and true error (max/mean) against time and
-/// against megabytes received (log-scaled errors, floored at 0.01).
-pub fn flight_plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
+/// Colours of the policies in overlaid plots.
+const POLICY_COLOURS: [RGBColor; 4] = [
+    RGBColor(200, 30, 30),
+    RGBColor(30, 90, 200),
+    RGBColor(20, 150, 60),
+    RGBColor(140, 60, 170),
+];
+
+/// One link, every policy overlaid: max SSE and mean SSE against time, max
+/// SSE against megabytes received, and the largest true error at the probes
+/// against time (log scales, floored at 0.01). The tolerance is drawn as a
+/// grey line.
+pub fn policies_plot(
+    path: &Path,
+    title: &str,
+    runs: &[(planet_client::Policy, Vec<Row>)],
+    tolerance: f64,
+) -> Result<()> {
     register();
     let root = BitMapBackend::new(path, (1400, 900)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
@@ -29,33 +43,38 @@ pub fn flight_plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
         .titled(title, ("sans-serif", 24))
         .map_err(|e| anyhow!("{e}"))?;
     let panels = root.split_evenly((2, 2));
-    let t_max = rows.last().map_or(1.0, |r| r.t).max(1e-3);
-    let mb_max = rows
-        .last()
-        .map_or(1.0, |r| r.bytes_total as f64 / 1e6)
-        .max(1e-3);
-    let sse_hi = rows.iter().map(|r| r.sse_max).fold(1.0, f64::max) * 1.5;
-    let err_hi = rows
-        .iter()
+    let all = || runs.iter().flat_map(|r| r.1.iter());
+    let t_max = all().map(|r| r.t).fold(1e-3, f64::max);
+    let mb_max = all()
+        .map(|r| r.bytes_total as f64 / 1e6)
+        .fold(1e-3, f64::max);
+    let sse_hi = all().map(|r| r.sse_max).fold(1.0, f64::max) * 1.5;
+    let err_hi = all()
         .map(|r| r.err_max)
         .filter(|v| v.is_finite())
         .fold(1.0, f64::max)
         * 1.5;
-    for (k, area) in panels.iter().enumerate() {
-        let by_time = k % 2 == 0;
-        let sse = k < 2;
-        let x_max = if by_time { t_max } else { mb_max };
-        let (y_lo, y_hi) = if sse {
-            (FLOOR_PX, sse_hi)
-        } else {
-            (FLOOR_M, err_hi)
-        };
-        let x_label = if by_time { "time (s)" } else { "received (MB)" };
-        let y_label = if sse {
-            "screen-space error (px)"
-        } else {
-            "true error at probes (m)"
-        };
+    type Get = fn(&Row) -> Option<(f64, f64)>;
+    let panels_spec: [(&str, &str, f64, f64, Get); 4] = [
+        ("time (s)", "max SSE (px)", t_max, sse_hi, |r| {
+            Some((r.t, r.sse_max))
+        }),
+        ("time (s)", "mean SSE (px)", t_max, sse_hi, |r| {
+            Some((r.t, r.sse_mean))
+        }),
+        ("received (MB)", "max SSE (px)", mb_max, sse_hi, |r| {
+            Some((r.bytes_total as f64 / 1e6, r.sse_max))
+        }),
+        (
+            "time (s)",
+            "max true error at probes (m)",
+            t_max,
+            err_hi,
+            |r| (r.probes > 0 && r.err_max.is_finite()).then_some((r.t, r.err_max)),
+        ),
+    ];
+    for (k, (area, (xl, yl, x_max, y_hi, get))) in panels.iter().zip(panels_spec).enumerate() {
+        let y_lo = FLOOR_PX;
         let mut chart = ChartBuilder::on(area)
             .margin(12)
             .x_label_area_size(40)
@@ -64,61 +83,34 @@ pub fn flight_plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
             .map_err(|e| anyhow!("{e}"))?;
         chart
             .configure_mesh()
-            .x_desc(x_label)
-            .y_desc(y_label)
+            .x_desc(xl)
+            .y_desc(yl)
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| anyhow!("{e}"))?;
-        let x = |r: &Row| {
-            if by_time {
-                r.t
-            } else {
-                r.bytes_total as f64 / 1e6
-            }
-        };
-        let (a, b, la, lb) = if sse {
-            (
-                rows.iter()
-                    .map(|r| (x(r), r.sse_max.max(y_lo)))
-                    .collect::<Vec<_>>(),
-                rows.iter()
-                    .map(|r| (x(r), r.sse_mean.max(y_lo)))
-                    .collect::<Vec<_>>(),
-                "max SSE",
-                "mean SSE",
-            )
-        } else {
-            (
-                rows.iter()
-                    .filter(|r| r.probes > 0)
-                    .map(|r| (x(r), r.err_max.max(y_lo)))
-                    .collect::<Vec<_>>(),
-                rows.iter()
-                    .filter(|r| r.probes > 0)
-                    .map(|r| (x(r), r.err_mean.max(y_lo)))
-                    .collect::<Vec<_>>(),
-                "max true error",
-                "mean true error",
-            )
-        };
-        chart
-            .draw_series(LineSeries::new(a, RED.stroke_width(2)))
-            .map_err(|e| anyhow!("{e}"))?
-            .label(la)
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
-        chart
-            .draw_series(LineSeries::new(b, BLUE.stroke_width(2)))
-            .map_err(|e| anyhow!("{e}"))?
-            .label(lb)
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
-        if sse {
+        for (i, (policy, rows)) in runs.iter().enumerate() {
+            let c = POLICY_COLOURS[i % POLICY_COLOURS.len()];
+            let pts: Vec<(f64, f64)> = rows
+                .iter()
+                .filter_map(get)
+                .map(|(x, y)| (x, y.max(y_lo)))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
+                .map_err(|e| anyhow!("{e}"))?
+                .label(policy.name())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                });
+        }
+        if k < 3 {
             chart
                 .draw_series(LineSeries::new(
-                    vec![(0.0, 1.0), (x_max, 1.0)],
+                    vec![(0.0, tolerance), (x_max, tolerance)],
                     BLACK.mix(0.4),
                 ))
                 .map_err(|e| anyhow!("{e}"))?
-                .label("1 px")
+                .label("tolerance")
                 .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.mix(0.4)));
         }
         chart

@@ -23,12 +23,14 @@
 //! check or decode is rejected and its block is requested again by a later
 //! frame's selection.
 
-use crate::quality::{QualityConfig, QualityController};
+use crate::link_estimate::LinkEstimator;
+use crate::quality::{QualityConfig, QualityController, QualityMode};
+use crate::refinement::{sanitize_tolerance, Kind, Policy, Refiner, DEFAULT_MAX_SSE_PX};
 use crate::request_queue::{select_tree_ops, OpKind, QueueConfig, RequestQueue, TreeOp};
 use crate::selection::{DrawBlock, Selector};
 use crate::stats::{FrameStats, Totals};
 use crate::tree::{
-    decode_record, Decoded, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
+    decode_record, Decoded, FastMap, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
 };
 use crate::view_prediction::ViewPredictor;
 use crate::visibility::{Camera, View};
@@ -42,6 +44,15 @@ use thiserror::Error;
 /// Client parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ClientConfig {
+    /// Refinement test and request order ([`crate::refinement`]).
+    pub policy: Policy,
+    /// Pixel tolerance of the screen-space error (every policy but the
+    /// thesis's). With a frame-rate or triangle-budget quality mode, the
+    /// controller coarsens it (never below this value).
+    pub max_sse_px: f64,
+    /// Bound the bytes in flight by the link's measured bandwidth-delay
+    /// product ([`crate::link_estimate`]) besides the queue's count.
+    pub link_window: bool,
     /// The load request queue.
     pub queue: QueueConfig,
     /// Split/merge operations executed per frame at most.
@@ -56,13 +67,65 @@ pub struct ClientConfig {
 }
 
 impl Default for ClientConfig {
+    /// [`ClientConfig::for_policy`]`(Policy::Ours, 1 px)`.
     fn default() -> Self {
+        ClientConfig::for_policy(Policy::Ours, DEFAULT_MAX_SSE_PX)
+    }
+}
+
+impl ClientConfig {
+    /// The configuration of `policy` at pixel tolerance `max_sse_px`, with
+    /// the policy's own queue (see [`crate::refinement`] for the sources):
+    ///
+    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window |
+    /// |---|---|---|---|---|---|---|
+    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP |
+    /// | thesis | 16 | any | after 2 frames | by 2 | no | count |
+    /// | cesium | 18 | 20 | never | no | no | count |
+    /// | breadth | 16 | any | after 2 frames | no | no | count |
+    pub fn for_policy(policy: Policy, max_sse_px: f64) -> ClientConfig {
+        let base = QueueConfig::default();
+        let (queue, predict_view, link_window) = match policy {
+            Policy::Ours => (
+                QueueConfig {
+                    max_in_flight: 64,
+                    cancel_after_frames: 10,
+                    preempt_margin: f64::INFINITY,
+                    ..base
+                },
+                true,
+                true,
+            ),
+            Policy::Thesis => (base, false, false),
+            Policy::Cesium => (
+                QueueConfig {
+                    max_in_flight: 18,
+                    cancel_after_frames: u32::MAX,
+                    preempt_margin: f64::INFINITY,
+                    max_new_per_frame: 20,
+                    ..base
+                },
+                false,
+                false,
+            ),
+            Policy::Breadth => (
+                QueueConfig {
+                    preempt_margin: f64::INFINITY,
+                    ..base
+                },
+                false,
+                false,
+            ),
+        };
         ClientConfig {
-            queue: QueueConfig::default(),
+            policy,
+            max_sse_px: sanitize_tolerance(max_sse_px),
+            link_window,
+            queue,
             tree_ops_per_frame: 64,
             decode_threads: 2,
             quality: QualityConfig::default(),
-            predict_view: true,
+            predict_view,
         }
     }
 }
@@ -165,6 +228,10 @@ pub struct Client {
     totals: Totals,
     last_error: Option<String>,
     predictor: ViewPredictor,
+    link: LinkEstimator,
+    clock: f64,
+    /// Records applied but not drawn at their new LOD yet, with their bytes.
+    not_drawn: FastMap<(Tree, BlockId), u64>,
 }
 
 impl Client {
@@ -227,6 +294,9 @@ impl Client {
             totals: Totals::default(),
             last_error: None,
             predictor: ViewPredictor::new(),
+            link: LinkEstimator::new(),
+            clock: 0.0,
+            not_drawn: FastMap::default(),
         })
     }
 
@@ -248,6 +318,41 @@ impl Client {
     /// The current quality factor.
     pub fn quality_factor(&self) -> f64 {
         self.quality.qf()
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ClientConfig {
+        &self.config
+    }
+
+    /// The pixel tolerance in force: the configured one, coarsened by the
+    /// quality controller when it regulates a frame rate or triangle budget
+    /// (triangles ∝ 1/tolerance², so `tol = max_sse · sqrt(QF₀ / QF)`, never
+    /// below `max_sse`).
+    pub fn tolerance(&self) -> f64 {
+        tolerance_for(&self.config, self.quality.qf())
+    }
+
+    /// The refiner this client would use for `view` now.
+    pub fn refiner(&self, view: &View) -> Refiner {
+        let qf = self.quality.qf();
+        Refiner::new(
+            self.config.policy,
+            view,
+            qf,
+            tolerance_for(&self.config, qf),
+        )
+    }
+
+    /// A round-trip time measured by the transport (seconds), for the
+    /// request window ([`crate::link_estimate`]).
+    pub fn observe_rtt(&mut self, seconds: f64) {
+        self.link.observe_rtt(seconds);
+    }
+
+    /// The link estimate behind the request window.
+    pub fn link(&self) -> &LinkEstimator {
+        &self.link
     }
 
     /// The quality controller (e.g. to change its mode).
@@ -297,6 +402,9 @@ impl Client {
     pub fn deliver(&mut self, id: u64, result: Result<Vec<u8>, TransportError>) {
         if let Some(f) = self.queue.get(id) {
             self.predictor.observe_latency(f.age);
+            if result.is_ok() {
+                self.link.observe_rtt(self.clock - f.sent_at);
+            }
         }
         let Some(req) = self.queue.take(id) else {
             if let Ok(b) = &result {
@@ -354,6 +462,11 @@ impl Client {
         self.frame += 1;
         let mut stats = std::mem::take(&mut self.since_last);
         stats.frame = self.frame;
+        if dt.is_finite() && dt > 0.0 {
+            self.clock += dt;
+        }
+        self.link
+            .on_frame(dt, stats.bytes_received, self.queue.in_flight() > 0);
         // 1. Finished refines.
         let mut applied: Vec<(Tree, BlockId, usize, bool)> = vec![];
         while let Ok(d) = self.done_rx.try_recv() {
@@ -391,7 +504,9 @@ impl Client {
         let qf = self.quality.update(dt, self.last_triangles as f64);
         // 3. Selection.
         let view = View::new(camera, self.r_min, self.r_max);
-        let sel = self.selector.select(&self.tree, &view, qf);
+        let tol = tolerance_for(&self.config, qf);
+        let refiner = Refiner::new(self.config.policy, &view, qf, tol);
+        let sel = self.selector.select(&self.tree, &view, &refiner);
         // 4. Requests.
         let tree = &self.tree;
         let mut cancel = self.queue.retain_relevant(|t, b| tree.wants_refine(t, b));
@@ -402,6 +517,16 @@ impl Client {
             .predict(camera, self.r_min)
             .filter(|_| self.config.predict_view)
             .map(|c| View::new(&c, self.r_min, self.r_max));
+        // ... and that still need the LOD then: a request whose answer
+        // would arrive after it stopped being useful is not sent.
+        let later = predicted
+            .as_ref()
+            .filter(|_| self.config.policy != Policy::Thesis)
+            .map(|pv| Refiner::new(self.config.policy, pv, qf, tol));
+        let (ew, cw) = (
+            tree.elevation().width as f64,
+            tree.colour().map_or(0.0, |c| c.width as f64),
+        );
         let loads = sel
             .loads
             .into_iter()
@@ -413,12 +538,31 @@ impl Client {
                 }
                 // Colour blocks are culled through the elevation block of
                 // the same id when there is one.
-                tree.tree(Tree::Elevation)
+                let bounds = tree
+                    .tree(Tree::Elevation)
                     .and_then(|t| t.get(&r.block))
-                    .and_then(|n| n.bounds.as_ref())
-                    .is_none_or(|b| pv.is_visible(b))
+                    .and_then(|n| n.bounds.as_ref());
+                if !bounds.is_none_or(|b| pv.is_visible(b)) {
+                    return false;
+                }
+                let (Some(later), Some(b)) = (&later, bounds) else {
+                    return true;
+                };
+                let Some(n) = tree.tree(r.tree).and_then(|t| t.get(&r.block)) else {
+                    return true;
+                };
+                let (kind, w) = match r.tree {
+                    Tree::Elevation => (Kind::Elevation, ew),
+                    Tree::Colour => (Kind::Colour, cw),
+                };
+                let m = later.measure(kind, b.centre, b.radius, w, n.record.error as f64, 0.0);
+                later.leaf(&m, n.lod).load
             })
             .collect();
+        if self.config.link_window {
+            self.queue.set_window_bytes(Some(self.link.window_bytes()));
+        }
+        self.queue.set_clock(self.clock);
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
         let send: Vec<Outgoing> = chosen
@@ -436,17 +580,36 @@ impl Client {
         self.pending_ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
         // Stats.
         let draw = sel.draw;
+        let drawn_at_lod0 = |t: Tree, b: &BlockId| match t {
+            Tree::Elevation => draw.iter().any(|d| d.block == *b && d.lod == 0),
+            Tree::Colour => draw
+                .iter()
+                .any(|d| d.colour.is_some_and(|c| c.block == *b && c.lod == 0)),
+        };
+        // Records applied earlier and drawn now.
+        if !self.not_drawn.is_empty() {
+            let tree = &self.tree;
+            let mut later = 0u64;
+            self.not_drawn.retain(|(t, b), bytes| {
+                if drawn_at_lod0(*t, b) {
+                    later += *bytes;
+                    return false;
+                }
+                // Merged away or split: it can no longer be drawn.
+                tree.tree(*t)
+                    .and_then(|x| x.get(b))
+                    .is_some_and(|n| !n.split && n.lod == 0)
+            });
+            self.totals.bytes_drawn_later += later;
+        }
         for (t, b, bytes, forced) in &applied {
-            let used = match t {
-                Tree::Elevation => draw.iter().any(|d| d.block == *b && d.lod == 0),
-                Tree::Colour => draw
-                    .iter()
-                    .any(|d| d.colour.is_some_and(|c| c.block == *b && c.lod == 0)),
-            };
-            if used {
+            if drawn_at_lod0(*t, b) {
                 self.totals.bytes_relevant += *bytes as u64;
-            } else if *forced {
-                self.totals.bytes_forced += *bytes as u64;
+            } else {
+                if *forced {
+                    self.totals.bytes_forced += *bytes as u64;
+                }
+                self.not_drawn.insert((*t, *b), *bytes as u64);
             }
         }
         self.last_triangles = sel.triangles;
@@ -476,6 +639,22 @@ impl Client {
             send,
             cancel,
             stats,
+        }
+    }
+}
+
+/// The tolerance of `config` at quality factor `qf` ([`Client::tolerance`]).
+fn tolerance_for(config: &ClientConfig, qf: f64) -> f64 {
+    let tol = sanitize_tolerance(config.max_sse_px);
+    match config.quality.mode {
+        QualityMode::Fixed => tol,
+        _ => {
+            let k = (config.quality.initial / qf).sqrt();
+            if k.is_finite() && k > 1.0 {
+                tol * k
+            } else {
+                tol
+            }
         }
     }
 }

@@ -9,6 +9,11 @@
 //!   neighbours by lookup (Alg. 4.1), level-difference and binding
 //!   constraints, `validate()`.
 //! - [`importance`]: Eq. 3.2–3.4, LOD selection, triggers, screen-space error.
+//! - [`refinement`]: the policy: refinement by screen-space error against a
+//!   pixel tolerance (default) or by the thesis's importance, and the
+//!   request order of ours and of the peers' schedulers.
+//! - [`link_estimate`]: the request window sized by the measured
+//!   bandwidth-delay product.
 //! - [`quality`]: the quality-factor controller (frame rate or triangle budget).
 //! - [`visibility`]: camera, frustum, horizon-fitted near/far (Eq. 4.3) and
 //!   horizon occlusion.
@@ -32,8 +37,10 @@
 
 pub mod client;
 pub mod importance;
+pub mod link_estimate;
 pub mod net;
 pub mod quality;
+pub mod refinement;
 pub mod request_queue;
 pub mod selection;
 pub mod stats;
@@ -46,5 +53,6 @@ pub mod view_prediction;
 pub mod visibility;
 
 pub use client::{Client, ClientConfig, ClientError, FrameOutput, Outgoing, TransportError};
+pub use refinement::Policy;
 pub use selection::{ColourBinding, DrawBlock, NeighbourLod};
 pub use visibility::Camera;

@@ -667,6 +667,8 @@ struct Status {
     zero_rtt_refused: bool,
     welcome: Option<Welcome>,
     last_error: Option<NetError>,
+    /// The current connection (for its path statistics).
+    quic: Option<quinn::Connection>,
 }
 
 /// A reconnecting session; see [`Session::spawn`].
@@ -746,6 +748,14 @@ impl SessionHandle {
             .unwrap_or(false)
     }
 
+    /// The QUIC path's smoothed round-trip time while connected.
+    pub fn rtt(&self) -> Option<Duration> {
+        self.status
+            .lock()
+            .ok()
+            .and_then(|s| s.quic.as_ref().map(|c| c.rtt()))
+    }
+
     /// The latest welcome.
     pub fn welcome(&self) -> Option<Welcome> {
         self.status.lock().ok().and_then(|s| s.welcome.clone())
@@ -818,10 +828,14 @@ async fn run_session(
                     s.zero_rtt = conn.used_zero_rtt();
                     s.zero_rtt_refused = conn.zero_rtt_refused();
                     s.welcome = Some(welcome.clone());
+                    s.quic = Some(conn.quinn().clone());
                 });
                 let _ = ev.send(NetEvent::Connected(welcome));
                 let user_closed = serve_session(&conn, &mut cmd_rx, &ev).await;
-                set_status(&status, |s| s.connected = false);
+                set_status(&status, |s| {
+                    s.connected = false;
+                    s.quic = None;
+                });
                 if user_closed {
                     conn.close();
                     return;

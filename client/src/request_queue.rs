@@ -14,7 +14,11 @@
 //!   is full and a waiting request is more important than the worst in-flight
 //!   one by [`QueueConfig::preempt_margin`];
 //! - responses to unknown (cancelled) ids are recognised by
-//!   [`RequestQueue::take`] returning `None`, and dropped by the caller.
+//!   [`RequestQueue::take`] returning `None`, and dropped by the caller;
+//! - besides the count, the bytes in flight may be bounded by a window that
+//!   the client sizes from the link ([`RequestQueue::set_window_bytes`],
+//!   [`crate::link_estimate`]), and the new requests of one frame by
+//!   [`QueueConfig::max_new_per_frame`] (CesiumJS's priority heap).
 //!
 //! The split/merge queue ([`select_tree_ops`]) is larger and has no network:
 //! the most important triggered operations, up to a capacity per frame, are
@@ -52,6 +56,8 @@ pub struct QueueConfig {
     /// Cancel a request still unanswered after this many frames (a lost
     /// response must not hold a slot forever).
     pub timeout_frames: u32,
+    /// New requests sent in one frame at most (`usize::MAX`: no limit).
+    pub max_new_per_frame: usize,
 }
 
 impl Default for QueueConfig {
@@ -61,6 +67,7 @@ impl Default for QueueConfig {
             cancel_after_frames: 2,
             preempt_margin: 2.0,
             timeout_frames: 600,
+            max_new_per_frame: usize::MAX,
         }
     }
 }
@@ -74,6 +81,8 @@ pub struct InFlight {
     pub missed: u32,
     /// Frames since it was sent.
     pub age: u32,
+    /// The queue's clock ([`RequestQueue::set_clock`]) when it was sent.
+    pub sent_at: f64,
 }
 
 /// What one frame's selection decided.
@@ -92,6 +101,9 @@ pub struct RequestQueue {
     next_id: u64,
     in_flight: FastMap<u64, InFlight>,
     by_block: FastMap<(Tree, BlockId), u64>,
+    bytes_in_flight: u64,
+    window_bytes: Option<u64>,
+    clock: f64,
 }
 
 impl RequestQueue {
@@ -102,6 +114,43 @@ impl RequestQueue {
             next_id: 1,
             in_flight: FastMap::default(),
             by_block: FastMap::default(),
+            bytes_in_flight: 0,
+            window_bytes: None,
+            clock: 0.0,
+        }
+    }
+
+    /// Bound the bytes in flight (record sizes) to `bytes`, `None` for no
+    /// bound besides the count. The first request of an empty queue is
+    /// always sent, whatever its size.
+    pub fn set_window_bytes(&mut self, bytes: Option<u64>) {
+        self.window_bytes = bytes;
+    }
+
+    /// The byte window in force.
+    pub fn window_bytes(&self) -> Option<u64> {
+        self.window_bytes
+    }
+
+    /// Record sizes of the requests in flight.
+    pub fn bytes_in_flight(&self) -> u64 {
+        self.bytes_in_flight
+    }
+
+    /// Set the clock (seconds) stamped on requests sent from now on.
+    pub fn set_clock(&mut self, now: f64) {
+        self.clock = now;
+    }
+
+    fn fits(&self, r: &LoadRequest) -> bool {
+        if self.in_flight.len() >= self.config.max_in_flight {
+            return false;
+        }
+        match self.window_bytes {
+            Some(w) => {
+                self.in_flight.is_empty() || self.bytes_in_flight + r.record.size as u64 <= w
+            }
+            None => true,
         }
     }
 
@@ -130,6 +179,9 @@ impl RequestQueue {
     pub fn take(&mut self, id: u64) -> Option<LoadRequest> {
         let f = self.in_flight.remove(&id)?;
         self.by_block.remove(&(f.request.tree, f.request.block));
+        self.bytes_in_flight = self
+            .bytes_in_flight
+            .saturating_sub(f.request.record.size as u64);
         Some(f.request)
     }
 
@@ -196,12 +248,20 @@ impl RequestQueue {
                 .then(a.block.cmp(&b.block))
         });
         let mut waiting = waiting.into_iter().peekable();
-        while self.in_flight.len() < self.config.max_in_flight {
+        let new_max = self.config.max_new_per_frame;
+        while out.send.len() < new_max {
+            let Some(r) = waiting.peek() else { break };
+            if !self.fits(r) {
+                break;
+            }
             let Some(r) = waiting.next() else { break };
             out.send.push((self.push(r), r));
         }
         // Pre-emption of the least important in-flight request.
         for _ in 0..self.config.max_in_flight {
+            if out.send.len() >= new_max {
+                break;
+            }
             let Some(next) = waiting.peek() else { break };
             let worst = self
                 .in_flight
@@ -231,9 +291,11 @@ impl RequestQueue {
                 request: r,
                 missed: 0,
                 age: 0,
+                sent_at: self.clock,
             },
         );
         self.by_block.insert((r.tree, r.block), id);
+        self.bytes_in_flight += r.record.size as u64;
         id
     }
 }
@@ -305,6 +367,7 @@ mod tests {
             cancel_after_frames: 1,
             preempt_margin: 2.0,
             timeout_frames: 100,
+            max_new_per_frame: usize::MAX,
         });
         let s = q.select(vec![req(0, 1.0), req(1, 3.0), req(2, 2.0), req(1, 0.5)]);
         assert_eq!(
@@ -329,6 +392,37 @@ mod tests {
         let id = s3.send[0].0;
         assert!(q.take(id).is_some());
         assert!(q.take(id).is_none());
+    }
+
+    #[test]
+    fn byte_window_and_per_frame_cap() {
+        let sized = |x: u32, size: u32| LoadRequest {
+            record: ChildRef {
+                size,
+                ..ChildRef::default()
+            },
+            ..req(x, 10.0 - x as f64)
+        };
+        let mut q = RequestQueue::new(QueueConfig {
+            max_in_flight: 100,
+            max_new_per_frame: 3,
+            ..QueueConfig::default()
+        });
+        q.set_window_bytes(Some(10_000));
+        // The first is always sent, even over the window.
+        let s = q.select(vec![sized(0, 20_000), sized(1, 100)]);
+        assert_eq!(s.send.len(), 1);
+        assert_eq!(q.bytes_in_flight(), 20_000);
+        let id = s.send[0].0;
+        q.take(id);
+        assert_eq!(q.bytes_in_flight(), 0);
+        // Four fit the window; three a frame.
+        let v: Vec<_> = (1..6).map(|x| sized(x, 2_500)).collect();
+        let s = q.select(v.clone());
+        assert_eq!(s.send.len(), 3);
+        let s = q.select(v);
+        assert_eq!(s.send.len(), 1);
+        assert_eq!(q.bytes_in_flight(), 10_000);
     }
 
     #[test]

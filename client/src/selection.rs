@@ -24,10 +24,7 @@
 //! (erratum of §4.3.1, thesis-notes §7.4): the block adapts on that edge
 //! when it is positive; split (finer) or invisible neighbours give `None`.
 
-use crate::importance::{
-    block_distance, importance, refine_importance, screen_space_error, selected_lod,
-    split_importance, wants_merge, wants_split, Importance, ScreenError,
-};
+use crate::refinement::{Kind, Measure, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{
     Blocked, ChangeKind, FastMap, LinkedTree, Node, PartialTree, TreeChange, TreeChanges, TreeStamp,
@@ -95,8 +92,10 @@ struct Ctx<'a> {
     out: Selection,
 }
 
-/// Select the LODs to draw and trigger requests for one frame.
-pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
+/// Select the LODs to draw and trigger requests for one frame, with the
+/// refinement test and request order of `refiner`
+/// ([`crate::refinement`]).
+pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
     let mut cx = Ctx {
         tree,
         out: Selection::default(),
@@ -114,8 +113,8 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
             let Some(n) = et.get(&id) else { continue };
             let Some(b) = n.bounds.as_ref() else { continue };
             let visible = parent_visible && view.is_visible(b);
-            let dist = block_distance(view.camera.eye, b.centre, b.radius);
-            let imp = importance(dist, b.radius, ew, qf);
+            let (err1, err0) = (n.record.error as f64, child_error(n));
+            let m = refiner.measure(Kind::Elevation, b.centre, b.radius, ew, err1, err0);
             if n.split {
                 info.insert(
                     id,
@@ -125,19 +124,21 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
                         drawn: None,
                     },
                 );
-                if wants_merge(imp) && tree.can_merge(Tree::Elevation, &id).is_ok() {
-                    cx.out.ops.push(TreeOp {
-                        kind: OpKind::Merge,
-                        tree: Tree::Elevation,
-                        block: id,
-                        importance: imp,
-                    });
+                if let Some(p) = refiner.merge(&m) {
+                    if tree.can_merge(Tree::Elevation, &id).is_ok() {
+                        cx.out.ops.push(TreeOp {
+                            kind: OpKind::Merge,
+                            tree: Tree::Elevation,
+                            block: id,
+                            importance: p,
+                        });
+                    }
                 }
                 stack.extend(id.children().map(|c| (c, visible)));
                 continue;
             }
-            let sel = selected_lod(imp);
-            let lod = sel.max(n.lod);
+            let d = refiner.leaf(&m, n.lod);
+            let lod = d.lod.max(n.lod);
             info.insert(
                 id,
                 NodeFrame {
@@ -149,25 +150,16 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
             if !visible {
                 continue;
             }
-            if sel < n.lod {
-                cx.load(Tree::Elevation, id, refine_importance(n.lod, imp), false);
-            } else if wants_split(imp) && n.can_split_data().is_ok() {
-                cx.trigger_split(Tree::Elevation, id, split_importance(imp), 0);
+            if d.load {
+                let p = refiner.load_priority(&m, n.lod, id.level, b.centre);
+                cx.load(Tree::Elevation, id, p, false);
+            } else if d.split && n.can_split_data().is_ok() {
+                let p = refiner.split_priority(&m, id.level, b.centre);
+                cx.trigger_split(Tree::Elevation, id, p, 0);
             }
-            let error = if lod == 1 {
-                n.record.error as f64
-            } else {
-                n.child_refs.as_ref().map_or(0.0, |c| {
-                    c.iter().map(|r| r.error as f64).fold(0.0, f64::max)
-                })
-            };
-            let sse = screen_space_error(
-                error,
-                dist.max(view.near),
-                view.camera.viewport_height_px,
-                view.camera.fov_y,
-            );
-            cx.draw(id, lod, et.width, imp, sse);
+            let error = if lod == 1 { err1 } else { err0 };
+            let sse = refiner.screen_error(error, m.dist);
+            cx.draw(id, lod, et.width, d.importance, sse);
         }
     }
     // Colour tree.
@@ -182,33 +174,36 @@ pub fn select(tree: &PartialTree, view: &View, qf: f64) -> Selection {
                     continue;
                 };
                 let visible = info.get(&id).is_some_and(|i| i.visible);
-                let dist = block_distance(view.camera.eye, b.centre, b.radius);
-                let imp = importance(dist, b.radius, cw, qf);
+                let (err1, err0) = (n.record.error as f64, child_error(n));
+                let m = refiner.measure(Kind::Colour, b.centre, b.radius, cw, err1, err0);
                 if n.split {
-                    if wants_merge(imp) && tree.can_merge(Tree::Colour, &id).is_ok() {
-                        cx.out.ops.push(TreeOp {
-                            kind: OpKind::Merge,
-                            tree: Tree::Colour,
-                            block: id,
-                            importance: imp,
-                        });
+                    if let Some(p) = refiner.merge(&m) {
+                        if tree.can_merge(Tree::Colour, &id).is_ok() {
+                            cx.out.ops.push(TreeOp {
+                                kind: OpKind::Merge,
+                                tree: Tree::Colour,
+                                block: id,
+                                importance: p,
+                            });
+                        }
                     }
                     stack.extend(id.children().map(|c| (c, true)));
                     continue;
                 }
-                let sel = selected_lod(imp);
-                colour_drawn.insert(id, sel.max(n.lod));
+                let d = refiner.leaf(&m, n.lod);
+                colour_drawn.insert(id, d.lod.max(n.lod));
                 if !visible {
                     continue;
                 }
-                if sel < n.lod {
-                    cx.load(Tree::Colour, id, refine_importance(n.lod, imp), false);
-                } else if wants_split(imp) && tree.can_split(Tree::Colour, &id).is_ok() {
+                if d.load {
+                    let p = refiner.load_priority(&m, n.lod, id.level, b.centre);
+                    cx.load(Tree::Colour, id, p, false);
+                } else if d.split && tree.can_split(Tree::Colour, &id).is_ok() {
                     cx.out.ops.push(TreeOp {
                         kind: OpKind::Split,
                         tree: Tree::Colour,
                         block: id,
-                        importance: split_importance(imp),
+                        importance: refiner.split_priority(&m, id.level, b.centre),
                     });
                 }
             }
@@ -334,10 +329,6 @@ impl Ctx<'_> {
 const NONE: u32 = u32::MAX;
 /// Not drawn (per-frame LOD sentinel).
 const NOT_DRAWN: u8 = u8::MAX;
-/// Memoised importance of a split block that does not want to merge
-/// ([`Importance::if_may_merge`] is `None`; `wants_merge` is false for
-/// NaN).
-const NO_MERGE: f64 = f64::NAN;
 
 /// Per-frame inputs of one elevation node of the cached flat tree
 /// (pre-order, the traversal order of [`select`]), kept small: the frame
@@ -404,6 +395,8 @@ struct CNode {
     lod: u8,
     splittable: bool,
     record: ChildRef,
+    /// Geometric error at LOD 0 (children's records).
+    err0: f64,
 }
 
 /// A ball holding two balls (slightly enlarged for rounding).
@@ -489,7 +482,7 @@ pub struct Selector {
     memo_key: Option<MemoKey>,
     memo_gen: u64,
     memo: Vec<Memo>,
-    cmemo: Vec<(u64, f64)>,
+    cmemo: Vec<(u64, Measure)>,
 }
 
 /// Emptied buffers of the arrays replaced by the last splice, reused by the
@@ -502,7 +495,7 @@ struct Spare {
     memo: Vec<Memo>,
     col: Vec<u32>,
     cnodes: Vec<CNode>,
-    cmemo: Vec<(u64, f64)>,
+    cmemo: Vec<(u64, Measure)>,
     children: Vec<[u32; 4]>,
     flags: Vec<bool>,
     cflags: Vec<bool>,
@@ -527,34 +520,38 @@ impl Spare {
     }
 }
 
-/// What importance (Eq. 3.2–3.3) and the screen-space error depend on
-/// besides the node: eye position, quality factor, near distance, viewport
-/// height and field of view (bit patterns, so any change counts).
+/// What a node's [`Measure`] and screen-space error depend on besides the
+/// node: eye position, viewport height and field of view, and the refiner's
+/// policy, tolerance, quality factor and near distance (bit patterns, so any
+/// change counts).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct MemoKey([u64; 7]);
+struct MemoKey([u64; 9]);
 
 impl MemoKey {
-    fn new(view: &View, qf: f64) -> MemoKey {
+    fn new(view: &View, refiner: &Refiner) -> MemoKey {
         let e = view.camera.eye;
+        let [a, b, c, d] = refiner.memo_key();
         MemoKey([
             e.x.to_bits(),
             e.y.to_bits(),
             e.z.to_bits(),
-            qf.to_bits(),
-            view.near.to_bits(),
             view.camera.viewport_height_px.to_bits(),
             view.camera.fov_y.to_bits(),
+            a,
+            b,
+            c,
+            d,
         ])
     }
 }
 
-/// Memoised per-node values (valid when `gen` is the selector's). For a
-/// split block `imp` is only kept where it may merge (else `NO_MERGE`); a
-/// block changing between leaf and split is re-read with a fresh entry.
+/// Memoised per-node values (valid when `gen` is the selector's); a block
+/// changing between leaf and split, or refined, is re-read with a fresh
+/// entry.
 #[derive(Debug, Clone, Copy, Default)]
 struct Memo {
     gen: u64,
-    imp: f64,
+    m: Measure,
     /// The LOD `sse` was computed for (`NOT_DRAWN`: none).
     sse_lod: u8,
     sse: f64,
@@ -637,6 +634,9 @@ impl Selector {
                 h.lod = n.lod;
                 h.splittable = n.can_split_data().is_ok();
                 self.cold[h.slot as usize].err0 = child_error(n);
+                // Generation 0 is never valid: the measure (LOD 0's error
+                // came with the record) and the error are recomputed.
+                self.memo[i].gen = 0;
                 self.memo[i].sse_lod = NOT_DRAWN;
             }
             Tree::Colour => {
@@ -646,6 +646,8 @@ impl Selector {
                     c.split = n.split;
                     c.lod = n.lod;
                     c.splittable = n.can_split_data().is_ok();
+                    c.err0 = child_error(n);
+                    self.cmemo[j as usize].0 = 0;
                 }
             }
         }
@@ -836,7 +838,7 @@ impl Selector {
                         continue;
                     }
                     self.col_of_elev[elev as usize] = self.cnodes.len() as u32;
-                    self.cmemo.push((0, 0.0));
+                    self.cmemo.push((0, Measure::default()));
                     self.cnodes.push(CNode {
                         id,
                         elev,
@@ -844,6 +846,7 @@ impl Selector {
                         lod: cn.lod,
                         splittable: cn.can_split_data().is_ok(),
                         record: cn.record,
+                        err0: child_error(cn),
                     });
                     if cn.split {
                         let ec = self.children[elev as usize];
@@ -1059,8 +1062,9 @@ impl Selector {
                         lod: cn.lod,
                         splittable: cn.can_split_data().is_ok(),
                         record: cn.record,
+                        err0: child_error(cn),
                     };
-                    (c, (0, 0.0))
+                    (c, (0, Measure::default()))
                 };
                 self.col_of_elev[i] = self.cnodes.len() as u32;
                 self.cnodes.push(c);
@@ -1157,7 +1161,7 @@ impl Selector {
 
     /// Select the LODs to draw and trigger requests for one frame: the same
     /// result as [`select`]`(tree, view, qf)`.
-    pub fn select(&mut self, tree: &PartialTree, view: &View, qf: f64) -> Selection {
+    pub fn select(&mut self, tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
         self.update(tree);
         let mut cx = Ctx {
             tree,
@@ -1168,11 +1172,8 @@ impl Selector {
         };
         let et = tree.elevation();
         let ew = et.width as f64;
-        let eye = view.camera.eye;
-        let sse = ScreenError::new(view.camera.viewport_height_px, view.camera.fov_y);
-        let imp_of = Importance::new(qf);
         // Generation 0 is never valid, so fresh entries are recomputed.
-        let key = MemoKey::new(view, qf);
+        let key = MemoKey::new(view, refiner);
         if self.memo_key != Some(key) || self.memo_gen == 0 {
             self.memo_key = Some(key);
             self.memo_gen += 1;
@@ -1212,23 +1213,23 @@ impl Selector {
             };
             self.state[i] = st;
             if h.split {
-                // Split blocks only need the importance where they may
-                // merge (visible or not).
+                // Split blocks only ask whether to merge (visible or not).
                 let m = &mut self.memo[i];
                 if m.gen != gen {
+                    let c = &self.cold[h.slot as usize];
                     m.gen = gen;
-                    let d = block_distance(eye, h.centre, h.radius);
-                    m.imp = imp_of.if_may_merge(d, h.radius, ew).unwrap_or(NO_MERGE);
+                    m.m = refiner.measure(Kind::Elevation, h.centre, h.radius, ew, c.err1, c.err0);
                     m.sse_lod = NOT_DRAWN;
                 }
-                let imp = m.imp;
-                if wants_merge(imp) && tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok() {
-                    cx.out.ops.push(TreeOp {
-                        kind: OpKind::Merge,
-                        tree: Tree::Elevation,
-                        block: self.ids[i],
-                        importance: imp,
-                    });
+                if let Some(p) = refiner.merge(&m.m) {
+                    if tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok() {
+                        cx.out.ops.push(TreeOp {
+                            kind: OpKind::Merge,
+                            tree: Tree::Elevation,
+                            block: self.ids[i],
+                            importance: p,
+                        });
+                    }
                 }
                 continue;
             }
@@ -1237,39 +1238,37 @@ impl Selector {
                 continue;
             }
             let m = &mut self.memo[i];
-            let mut dist = None;
             if m.gen != gen {
-                let d = block_distance(eye, h.centre, h.radius);
+                let c = &self.cold[h.slot as usize];
                 m.gen = gen;
-                m.imp = imp_of.of(d, h.radius, ew);
+                m.m = refiner.measure(Kind::Elevation, h.centre, h.radius, ew, c.err1, c.err0);
                 m.sse_lod = NOT_DRAWN;
-                dist = Some(d);
             }
-            let imp = m.imp;
+            let mm = m.m;
             let id = self.ids[i];
-            let sel = selected_lod(imp);
-            let lod = sel.max(h.lod);
+            let d = refiner.leaf(&mm, h.lod);
+            let lod = d.lod.max(h.lod);
             self.drawn[i] = lod;
-            if sel < h.lod {
+            if d.load {
                 cx.out.loads.push(LoadRequest {
                     tree: Tree::Elevation,
                     block: id,
                     record: self.cold[h.slot as usize].record,
-                    importance: refine_importance(h.lod, imp),
+                    importance: refiner.load_priority(&mm, h.lod, id.level, h.centre),
                     forced: false,
                 });
-            } else if wants_split(imp) && h.splittable {
-                cx.trigger_split(Tree::Elevation, id, split_importance(imp), 0);
+            } else if d.split && h.splittable {
+                let p = refiner.split_priority(&mm, id.level, h.centre);
+                cx.trigger_split(Tree::Elevation, id, p, 0);
             }
             let m = &mut self.memo[i];
             if m.sse_lod != lod {
                 let c = &self.cold[h.slot as usize];
                 let error = if lod == 1 { c.err1 } else { c.err0 };
-                let dist = dist.unwrap_or_else(|| block_distance(eye, h.centre, h.radius));
-                m.sse = sse.of(error, dist.max(view.near));
+                m.sse = refiner.screen_error(error, mm.dist);
                 m.sse_lod = lod;
             }
-            cx.draw(id, lod, et.width, imp, m.sse);
+            cx.draw(id, lod, et.width, d.importance, m.sse);
             self.draw_idx.push(i as u32);
         }
         // Colour tree.
@@ -1280,58 +1279,50 @@ impl Selector {
             for (j, c) in self.cnodes.iter().enumerate() {
                 let h = &self.hot[c.elev as usize];
                 let visible = self.state[c.elev as usize] != 0;
-                let m = &mut self.cmemo[j];
-                if c.split {
-                    if m.0 != gen {
-                        let d = block_distance(eye, h.centre, h.radius);
-                        *m = (
-                            gen,
-                            imp_of.if_may_merge(d, h.radius, cw).unwrap_or(NO_MERGE),
-                        );
-                    }
-                    let imp = m.1;
-                    if wants_merge(imp) && tree.can_merge(Tree::Colour, &c.id).is_ok() {
-                        cx.out.ops.push(TreeOp {
-                            kind: OpKind::Merge,
-                            tree: Tree::Colour,
-                            block: c.id,
-                            importance: imp,
-                        });
-                    }
-                    continue;
-                }
                 // A hidden leaf triggers nothing, and its drawn LOD is
                 // never asked for: the colour bound to a drawn block is on
                 // its (visible) elevation path.
-                if !visible {
+                if !c.split && !visible {
                     continue;
                 }
+                let m = &mut self.cmemo[j];
                 if m.0 != gen {
+                    let err1 = c.record.error as f64;
                     *m = (
                         gen,
-                        imp_of.of(block_distance(eye, h.centre, h.radius), h.radius, cw),
+                        refiner.measure(Kind::Colour, h.centre, h.radius, cw, err1, c.err0),
                     );
                 }
-                let imp = m.1;
-                let sel = selected_lod(imp);
-                self.cdrawn[j] = sel.max(c.lod);
-                if sel < c.lod {
+                let mm = m.1;
+                if c.split {
+                    if let Some(p) = refiner.merge(&mm) {
+                        if tree.can_merge(Tree::Colour, &c.id).is_ok() {
+                            cx.out.ops.push(TreeOp {
+                                kind: OpKind::Merge,
+                                tree: Tree::Colour,
+                                block: c.id,
+                                importance: p,
+                            });
+                        }
+                    }
+                    continue;
+                }
+                let d = refiner.leaf(&mm, c.lod);
+                self.cdrawn[j] = d.lod.max(c.lod);
+                if d.load {
                     cx.out.loads.push(LoadRequest {
                         tree: Tree::Colour,
                         block: c.id,
                         record: c.record,
-                        importance: refine_importance(c.lod, imp),
+                        importance: refiner.load_priority(&mm, c.lod, c.id.level, h.centre),
                         forced: false,
                     });
-                } else if wants_split(imp)
-                    && c.splittable
-                    && tree.can_split(Tree::Colour, &c.id).is_ok()
-                {
+                } else if d.split && c.splittable && tree.can_split(Tree::Colour, &c.id).is_ok() {
                     cx.out.ops.push(TreeOp {
                         kind: OpKind::Split,
                         tree: Tree::Colour,
                         block: c.id,
-                        importance: split_importance(imp),
+                        importance: refiner.split_priority(&mm, c.id.level, h.centre),
                     });
                 }
             }

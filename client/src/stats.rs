@@ -73,6 +73,10 @@ pub struct Totals {
     /// coarser, so an invisible coarse neighbour is refined first). Part of
     /// the irrelevant bytes; the rest is `received − relevant − forced`.
     pub bytes_forced: u64,
+    /// Bytes of records applied, not drawn on arrival, and drawn at their
+    /// new LOD in a later frame. What was received and is neither this nor
+    /// relevant was never drawn: wasted ([`Totals::wasted_ratio`]).
+    pub bytes_drawn_later: u64,
     /// Records applied.
     pub refines_applied: u64,
     /// Records rejected.
@@ -86,6 +90,17 @@ impl Totals {
             1.0
         } else {
             self.bytes_relevant as f64 / self.bytes_received as f64
+        }
+    }
+
+    /// Bytes received and never drawn (so far: dropped, rejected, not yet
+    /// or never drawn) over received bytes (0 when nothing was received).
+    pub fn wasted_ratio(&self) -> f64 {
+        if self.bytes_received == 0 {
+            0.0
+        } else {
+            let used = self.bytes_relevant + self.bytes_drawn_later;
+            self.bytes_received.saturating_sub(used) as f64 / self.bytes_received as f64
         }
     }
 

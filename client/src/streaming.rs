@@ -146,6 +146,9 @@ impl StreamingClient {
     /// One frame: deliver what arrived, select, send and cancel.
     pub fn frame(&mut self, camera: &Camera, dt: f64) -> FrameOutput {
         self.drain_events();
+        if let Some(rtt) = self.session.rtt() {
+            self.client.observe_rtt(rtt.as_secs_f64());
+        }
         let out = self.client.frame(camera, dt);
         for s in &out.send {
             self.session.request(s.id, s.record.offset, s.record.size);

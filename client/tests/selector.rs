@@ -11,12 +11,13 @@ mod common;
 
 use common::*;
 use glam::DVec3;
+use planet_client::refinement::Refiner;
 use planet_client::request_queue::OpKind;
 use planet_client::selection::{select, Selector};
 use planet_client::stats::FrameStats;
 use planet_client::testdb::FakeServer;
 use planet_client::visibility::View;
-use planet_client::{Camera, Client};
+use planet_client::{Camera, Client, Policy};
 use proptest::prelude::*;
 
 fn client(qf: f64) -> Client {
@@ -32,9 +33,9 @@ fn checked_step(
 ) -> FrameStats {
     let (r_min, r_max) = c.radii();
     let view = View::new(cam, r_min, r_max);
-    let qf = c.quality_factor();
-    let want = select(c.tree(), &view, qf);
-    let got = sel.select(c.tree(), &view, qf);
+    let r = c.refiner(&view);
+    let want = select(c.tree(), &view, &r);
+    let got = sel.select(c.tree(), &view, &r);
     assert_eq!(got, want, "selector differs from select");
     if let Some(e) = sel.consistency_error(c.tree()) {
         panic!("spliced cache differs from a rebuilt one: {e}");
@@ -49,7 +50,16 @@ fn checked_step(
 
 #[test]
 fn selector_matches_select() {
-    let mut c = client(1e5);
+    selector_matches_select_with(client(1e5));
+}
+
+/// The same with the default policy (screen-space error, 1 px).
+#[test]
+fn selector_matches_select_sse() {
+    selector_matches_select_with(sse_client(1.0, 0));
+}
+
+fn selector_matches_select_with(mut c: Client) {
     let mut s = FakeServer::new(1);
     let mut sel = Selector::new();
     let base = DVec3::new(1.0, 0.2, 0.3);
@@ -158,12 +168,14 @@ fn selector_notices_another_tree() {
     let view = View::new(&cam, r_min, r_max);
     let fresh = client(1e5);
     let r0 = sel.rebuilds();
+    let thesis = |view: &View, qf: f64| Refiner::new(Policy::Thesis, view, qf, 1.0);
+    let r = thesis(&view, 1e5);
     assert_eq!(
-        sel.select(fresh.tree(), &view, 1e5),
-        select(fresh.tree(), &view, 1e5)
+        sel.select(fresh.tree(), &view, &r),
+        select(fresh.tree(), &view, &r)
     );
     let copy = c.tree().clone();
-    assert_eq!(sel.select(&copy, &view, 1e5), select(&copy, &view, 1e5));
+    assert_eq!(sel.select(&copy, &view, &r), select(&copy, &view, &r));
     assert_eq!(sel.rebuilds(), r0 + 2);
     // Same tree and eye, other quality factors and viewports: the kept
     // importances and errors are not reused.
@@ -171,7 +183,15 @@ fn selector_notices_another_tree() {
         let mut cam = cam;
         cam.viewport_height_px = h;
         let view = View::new(&cam, r_min, r_max);
-        assert_eq!(sel.select(&copy, &view, qf), select(&copy, &view, qf));
+        let r = thesis(&view, qf);
+        assert_eq!(sel.select(&copy, &view, &r), select(&copy, &view, &r));
+    }
+    // Other policies and tolerances on the same tree and eye.
+    for p in Policy::ALL {
+        for tol in [0.5, 1.0, 4.0] {
+            let r = Refiner::new(p, &view, 1e5, tol);
+            assert_eq!(sel.select(&copy, &view, &r), select(&copy, &view, &r));
+        }
     }
 }
 
@@ -184,8 +204,14 @@ proptest! {
         moves in camera_moves(),
         qf_log in 2.0f64..7.0,
         latency in 0u64..3,
+        sse in proptest::option::of(0.3f64..8.0),
     ) {
-        let mut c = client(10f64.powf(qf_log));
+        // The thesis's policy at a random QF, or the default one at a
+        // random tolerance.
+        let mut c = match sse {
+            None => client(10f64.powf(qf_log)),
+            Some(t) => sse_client(t, 0),
+        };
         let mut s = FakeServer::new(latency);
         let mut sel = Selector::new();
         for m in &moves {

@@ -10,7 +10,7 @@ use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
 use planet_client::tree::Samples;
 use planet_client::visibility::segment_hits_ball;
-use planet_client::{Camera, Client, ClientConfig, FrameOutput, TransportError};
+use planet_client::{Camera, Client, ClientConfig, FrameOutput, Policy, TransportError};
 use planet_core::cube::FaceCoord;
 use planet_core::format::Tree;
 use planet_core::lod::is_first_lod;
@@ -416,7 +416,7 @@ fn level_difference_limit_one_is_kept() {
             initial: 1e4,
             ..QualityConfig::default()
         },
-        ..ClientConfig::default()
+        ..ClientConfig::for_policy(Policy::Thesis, 1.0)
     };
     let mut c = Client::new(db4.header.clone(), cfg).expect("client");
     assert_eq!(c.tree().max_level_difference(), 1);
@@ -463,7 +463,7 @@ fn predicted_view_requests_waste_less_while_descending() {
                 ..QualityConfig::default()
             },
             predict_view: predict,
-            ..ClientConfig::default()
+            ..ClientConfig::for_policy(Policy::Thesis, 1.0)
         };
         let mut c = Client::new(db().header.clone(), cfg).expect("client");
         let mut s = FakeServer::new(12);

@@ -111,6 +111,10 @@ struct WindowArgs {
     /// wgpu renders on the CPU (lavapipe), where 60 fps leaves only the roots].
     #[arg(long)]
     target_fps: Option<f64>,
+    /// Largest screen-space error in pixels the client aims at (the frame-rate
+    /// controller coarsens it when the frame rate falls short).
+    #[arg(long, default_value_t = planet_client::refinement::DEFAULT_MAX_SSE_PX)]
+    max_sse: f64,
     /// Start at (and return with G to) LAT,LON,ALT (degrees, metres).
     #[arg(long, value_name = "LAT,LON,ALT", allow_hyphen_values = true)]
     goto: Option<String>,
@@ -173,9 +177,9 @@ struct RenderArgs {
     /// Stop after this many seconds of trajectory time.
     #[arg(long)]
     duration: Option<f64>,
-    /// Fixed quality factor of the streaming client (default 1e4).
-    #[arg(long)]
-    qf: Option<f64>,
+    /// Largest screen-space error in pixels the streaming client aims at.
+    #[arg(long, default_value_t = planet_client::refinement::DEFAULT_MAX_SSE_PX)]
+    max_sse: f64,
 }
 
 #[derive(Debug, Args)]
@@ -266,7 +270,7 @@ fn render(a: RenderArgs) -> Result<()> {
         reference_px: a.reference_px,
         pace: !a.no_pace,
         duration: a.duration,
-        qf: a.qf,
+        max_sse: a.max_sse,
     };
     app::render_cmd::run(&opts)
 }
@@ -310,6 +314,7 @@ fn window(a: WindowArgs) -> Result<()> {
         goto,
         width: a.width.max(16),
         height: a.height.max(16),
+        max_sse: a.max_sse,
         screenshot: a.screenshot,
         exit_after_frames: a.exit_after_frames,
     })

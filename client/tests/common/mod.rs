@@ -8,7 +8,7 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::testdb::{TestDb, TestDbConfig};
-use planet_client::{Client, ClientConfig};
+use planet_client::{Client, ClientConfig, Policy};
 use proptest::prelude::*;
 
 /// The default synthetic database, built once per test binary.
@@ -17,17 +17,30 @@ pub fn db() -> &'static TestDb {
     DB.get_or_init(|| TestDb::build(TestDbConfig::default()))
 }
 
-/// A client of [`db`] with a fixed quality factor `qf` and `threads`
-/// decode threads (0: decode on the frame's thread).
+/// A client of [`db`] with the thesis's policy at a fixed quality factor
+/// `qf` and `threads` decode threads (0: decode on the frame's thread).
 pub fn fixed_qf_client(qf: f64, threads: usize) -> Client {
     let cfg = ClientConfig {
         decode_threads: threads,
+        ..ClientConfig::for_policy(Policy::Thesis, 1.0)
+    };
+    let cfg = ClientConfig {
         quality: QualityConfig {
             mode: QualityMode::Fixed,
             initial: qf,
             ..QualityConfig::default()
         },
-        ..ClientConfig::default()
+        ..cfg
+    };
+    Client::new(db().header.clone(), cfg).expect("client")
+}
+
+/// A client of [`db`] with the default policy (screen-space error) at
+/// tolerance `max_sse` pixels and `threads` decode threads.
+pub fn sse_client(max_sse: f64, threads: usize) -> Client {
+    let cfg = ClientConfig {
+        decode_threads: threads,
+        ..ClientConfig::for_policy(Policy::Ours, max_sse)
     };
     Client::new(db().header.clone(), cfg).expect("client")
 }

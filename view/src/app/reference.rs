@@ -29,7 +29,9 @@ pub fn reference_qf(px: f64, fov_y: f64, height: u32) -> f64 {
     8.0 / (px * pixel).powi(2)
 }
 
-/// A client config with a fixed quality factor and a large queue.
+/// A client config with a fixed quality factor and a large queue: the
+/// thesis's spacing criterion (samples at most so many pixels apart), not a
+/// streaming policy.
 pub fn reference_config(qf: f64, decode_threads: usize) -> ClientConfig {
     let mut cfg = ClientConfig {
         decode_threads,
@@ -39,7 +41,7 @@ pub fn reference_config(qf: f64, decode_threads: usize) -> ClientConfig {
             initial: qf,
             ..QualityConfig::default()
         },
-        ..ClientConfig::default()
+        ..ClientConfig::for_policy(planet_client::Policy::Thesis, 1.0)
     };
     cfg.queue.max_in_flight = 256;
     cfg.queue.cancel_after_frames = 1_000_000;

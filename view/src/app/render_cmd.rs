@@ -42,8 +42,8 @@ pub struct RenderOptions {
     pub pace: bool,
     /// Stop after this many seconds of trajectory time.
     pub duration: Option<f64>,
-    /// Quality factor of the streaming client (fixed).
-    pub qf: Option<f64>,
+    /// Largest screen-space error in pixels of the streaming client.
+    pub max_sse: f64,
 }
 
 /// Set `r_min` for the drawn blocks' chord sag.
@@ -86,10 +86,7 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
         .with_context(|| format!("creating {}", opts.out.display()))?;
     let rt = connect::runtime()?;
     let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
-    let mut cfg = ClientConfig::default();
-    if let Some(qf) = opts.qf {
-        cfg.quality.initial = qf;
-    }
+    let cfg = ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse);
     let mut sc = connect::connect(&rt, &endpoint.session, cfg)?;
     let header = sc.header().clone();
     let datum = header.datum;

@@ -60,6 +60,8 @@ pub struct WindowOptions {
     pub screenshot: Option<PathBuf>,
     /// Exit after this many frames (testing).
     pub exit_after_frames: Option<u64>,
+    /// Largest screen-space error in pixels the client aims at.
+    pub max_sse: f64,
 }
 
 fn no_display_message(detail: &str) -> String {
@@ -94,7 +96,7 @@ pub fn run(opts: WindowOptions) -> Result<()> {
             ),
             ..QualityConfig::default()
         },
-        ..ClientConfig::default()
+        ..ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse)
     };
     let client = connect::connect(&rt, &endpoint.session, cfg)?;
     let header = client.header().clone();

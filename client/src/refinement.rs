@@ -1,0 +1,507 @@
+//! What to refine, and in which order: the client's policy.
+//!
+//! The thesis (§3.6.2–3.6.4, §4.2.4; thesis-notes §6) refines by
+//! *importance*, the projected sample spacing scaled by a quality factor
+//! (Eq. 3.2–3.4, [`crate::importance`]), and ranks requests by the same
+//! number. It ignores the geometric error that every child reference of the
+//! database already carries (docs/FORMAT.md: the largest vertical deviation
+//! of a block drawn at its first LOD from the full-resolution data under
+//! it), so a flat ocean block is refined as eagerly as a cliff, and the QF
+//! that reaches a given screen-space error differs from one database and
+//! camera to the next.
+//!
+//! The default policy, [`Policy::Ours`], refines by **screen-space error**
+//! against a pixel tolerance (`--max-sse`, default 1 px), as the field does
+//! (Cesium's `maximumScreenSpaceError`, peers.md §1), with our per-record
+//! errors:
+//!
+//! ```text
+//! ρ(ε, d) = ε·H / (2·d·tan(fov_y/2))       d = max(|eye − centre| − radius, near)
+//! s1 = ρ(error of the block at LOD 1)       (its own record's error)
+//! s0 = ρ(error of the block at LOD 0)       (largest error of its children's records)
+//! leaf with LOD 1:   load LOD 0  when s1 > tol              (priority s1)
+//! leaf with LOD 0:   split       when s0 > tol              (priority s0)
+//!                    keep drawing LOD 0 while s1 > tol/2    (hysteresis)
+//! split block:       merge       when s1 ≤ tol/4            (two halvings of hysteresis)
+//! ```
+//!
+//! A block whose error is below the tolerance is never refined, whatever
+//! its size or distance; one above always is. Colour refines by projected
+//! texel size, as mip selection does: LOD 0 when the first LOD's texels
+//! would cover more than `tol` pixels and the record adds a colour
+//! difference (its error is at least one 8-bit step).
+//!
+//! The priority of a request is the screen-space error it removes (worst
+//! first), so the largest visible errors go first whatever their distance.
+//!
+//! The other policies are baselines measured in the same run
+//! (`planet-bench flight --policy`), each with the same refinement test and
+//! tolerance where its source has one, so that the comparison is of
+//! scheduling:
+//!
+//! - [`Policy::Thesis`]: Eq. 3.2–3.4 as the thesis gives them, with its
+//!   fixed queue and QF law ([`crate::quality`]).
+//! - [`Policy::Cesium`]: CesiumJS terrain streaming with its defaults
+//!   (peers.md §1): SSE refinement at `maximumScreenSpaceError` (set to our
+//!   tolerance), load priority `(1 − cos θ)·distance` where θ is the angle
+//!   between the view direction and the tile's centre and `distance` the
+//!   distance to its bounds (`GlobeSurfaceTileProvider.computeTileLoadPriority`;
+//!   smaller first), 18 requests in flight (`RequestScheduler`:
+//!   `maximumRequests = 50`, `maximumRequestsPerServer = 18`, one server),
+//!   at most 20 new requests a frame (`priorityHeapLength = 20`; those that
+//!   do not fit are refused and asked again next frame), in-flight requests
+//!   kept until their tile is gone, no view prediction. Parents stay drawn
+//!   until their children are loaded and ancestors are always loaded first,
+//!   as in every policy here (a child's first LOD is its parent's data).
+//! - [`Policy::Breadth`]: the naive baseline: the same SSE test, requests
+//!   in level order, nearest first, a fixed queue of 16.
+
+use crate::importance::{
+    refine_importance, selected_lod, split_importance, wants_merge, wants_split, Importance,
+    ScreenError,
+};
+use crate::visibility::View;
+use glam::DVec3;
+use std::fmt;
+use std::str::FromStr;
+
+/// Default pixel tolerance of the screen-space error.
+pub const DEFAULT_MAX_SSE_PX: f64 = 1.0;
+
+/// Drawing keeps LOD 0 while `s1` stays above `tol` times this.
+pub const KEEP_LOD0: f64 = 0.5;
+/// A split block merges when its own first LOD is within `tol` times this.
+pub const MERGE_AT: f64 = 0.25;
+
+/// A client policy: refinement test and request order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Policy {
+    /// Screen-space error against a pixel tolerance, worst error first,
+    /// window sized by the link (the default).
+    #[default]
+    Ours,
+    /// The thesis: importance (Eq. 3.2–3.4), QF, fixed queue.
+    Thesis,
+    /// CesiumJS terrain streaming with its defaults.
+    Cesium,
+    /// Level order, nearest first.
+    Breadth,
+}
+
+impl Policy {
+    /// Every policy, in the order benchmarks list them.
+    pub const ALL: [Policy; 4] = [
+        Policy::Ours,
+        Policy::Thesis,
+        Policy::Cesium,
+        Policy::Breadth,
+    ];
+
+    /// The policy's name (`ours`, `thesis`, `cesium`, `breadth`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Policy::Ours => "ours",
+            Policy::Thesis => "thesis",
+            Policy::Cesium => "cesium",
+            Policy::Breadth => "breadth",
+        }
+    }
+}
+
+impl fmt::Display for Policy {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// An unknown policy name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown policy {0:?} (ours, thesis, cesium or breadth)")]
+pub struct UnknownPolicy(pub String);
+
+impl FromStr for Policy {
+    type Err = UnknownPolicy;
+    fn from_str(s: &str) -> Result<Policy, UnknownPolicy> {
+        Policy::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| UnknownPolicy(s.to_string()))
+    }
+}
+
+/// What a node's decisions depend on besides the policy and tolerance,
+/// computed once per node while the eye stays put (memoisable: it does not
+/// depend on the view direction).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Measure {
+    /// Thesis: importance. Screen-error policies: `s1`, the screen-space
+    /// error of the block drawn at LOD 1, in pixels.
+    pub a: f64,
+    /// Screen-error policies: `s0`, at LOD 0 (unused by the thesis).
+    pub b: f64,
+    /// Distance from the eye to the block (`|eye − centre| − radius`).
+    pub dist: f64,
+}
+
+/// A leaf's decisions for one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LeafDecision {
+    /// The LOD the selection wants (0 full resolution, 1 first LOD).
+    pub lod: u8,
+    /// Load LOD 0 (the block has LOD 1 only and wants LOD 0).
+    pub load: bool,
+    /// Split (the block has LOD 0 and wants its children).
+    pub split: bool,
+    /// The value reported as [`crate::DrawBlock::importance`]: the
+    /// thesis's importance, or for the other policies the screen-space
+    /// error of the first LOD in pixels.
+    pub importance: f64,
+}
+
+/// Which tree a node belongs to: elevation errors are metres, colour
+/// errors are 8-bit steps and refine by texel size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// Elevation.
+    Elevation,
+    /// Colour.
+    Colour,
+}
+
+/// The per-frame refinement test and request order of a policy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Refiner {
+    policy: Policy,
+    tol: f64,
+    qf: f64,
+    imp: Importance,
+    sse: ScreenError,
+    near: f64,
+    eye: DVec3,
+    forward: DVec3,
+}
+
+impl Refiner {
+    /// For `policy` in `view`, with quality factor `qf` (thesis) and pixel
+    /// tolerance `max_sse` (the others; non-finite or non-positive values
+    /// fall back to [`DEFAULT_MAX_SSE_PX`]).
+    pub fn new(policy: Policy, view: &View, qf: f64, max_sse: f64) -> Refiner {
+        let f = view.camera.forward;
+        let forward = if f.length_squared() > 0.0 && f.is_finite() {
+            f.normalize()
+        } else {
+            DVec3::ZERO
+        };
+        Refiner {
+            policy,
+            tol: sanitize_tolerance(max_sse),
+            qf,
+            imp: Importance::new(qf),
+            sse: ScreenError::new(view.camera.viewport_height_px, view.camera.fov_y),
+            near: if view.near.is_finite() {
+                view.near.max(0.0)
+            } else {
+                0.0
+            },
+            eye: view.camera.eye,
+            forward,
+        }
+    }
+
+    /// The policy.
+    pub fn policy(&self) -> Policy {
+        self.policy
+    }
+
+    /// The pixel tolerance.
+    pub fn tolerance(&self) -> f64 {
+        self.tol
+    }
+
+    /// Bit patterns of everything besides the node that [`Refiner::measure`]
+    /// depends on (for memoisation).
+    pub fn memo_key(&self) -> [u64; 4] {
+        [
+            self.tol.to_bits(),
+            self.near.to_bits(),
+            self.policy as u64,
+            self.qf.to_bits(),
+        ]
+    }
+
+    /// The node's memoisable measure. `width` is the tree's block width,
+    /// `err1` / `err0` the block's errors at LOD 1 and LOD 0.
+    pub fn measure(
+        &self,
+        kind: Kind,
+        centre: DVec3,
+        radius: f64,
+        width: f64,
+        err1: f64,
+        err0: f64,
+    ) -> Measure {
+        let dist = (self.eye - centre).length() - radius;
+        match self.policy {
+            Policy::Thesis => Measure {
+                a: self.imp.of(dist, radius, width),
+                b: 0.0,
+                dist,
+            },
+            _ => {
+                let d = if dist.is_nan() {
+                    0.0
+                } else {
+                    dist.max(self.near)
+                };
+                let (s1, s0) = match kind {
+                    Kind::Elevation => (self.sse.of(err1, d), self.sse.of(err0, d)),
+                    Kind::Colour => {
+                        // The footprint's side over the texels across it
+                        // at each LOD, where the LOD adds any colour.
+                        let side = radius.max(0.0) * std::f64::consts::SQRT_2;
+                        let texel1 = side / (width * 0.5).max(1.0);
+                        let texel0 = side / width.max(1.0);
+                        (
+                            if err1 > 0.0 {
+                                self.sse.of(texel1, d)
+                            } else {
+                                0.0
+                            },
+                            if err0 > 0.0 {
+                                self.sse.of(texel0, d)
+                            } else {
+                                0.0
+                            },
+                        )
+                    }
+                };
+                Measure { a: s1, b: s0, dist }
+            }
+        }
+    }
+
+    /// Whether a split block whose measure is `m` should merge, and the
+    /// operation's priority.
+    pub fn merge(&self, m: &Measure) -> Option<f64> {
+        match self.policy {
+            Policy::Thesis => wants_merge(m.a).then_some(m.a),
+            _ => (m.a <= self.tol * MERGE_AT).then_some(-m.a),
+        }
+    }
+
+    /// A leaf's decisions; `lod` is the best LOD it has (0 or 1).
+    pub fn leaf(&self, m: &Measure, lod: u8) -> LeafDecision {
+        match self.policy {
+            Policy::Thesis => {
+                let sel = selected_lod(m.a);
+                LeafDecision {
+                    lod: sel,
+                    load: sel < lod,
+                    split: sel >= lod && wants_split(m.a),
+                    importance: m.a,
+                }
+            }
+            _ => {
+                let (s1, s0) = (m.a, m.b);
+                let want0 = s1 > self.tol || (lod == 0 && s1 > self.tol * KEEP_LOD0);
+                let sel = u8::from(!want0);
+                LeafDecision {
+                    lod: sel,
+                    load: lod == 1 && s1 > self.tol,
+                    split: lod == 0 && s0 > self.tol,
+                    importance: s1,
+                }
+            }
+        }
+    }
+
+    /// Priority (higher first) of loading LOD 0 of a leaf with LOD `lod`,
+    /// at `level`, centred at `centre`.
+    pub fn load_priority(&self, m: &Measure, lod: u8, level: u8, centre: DVec3) -> f64 {
+        match self.policy {
+            Policy::Thesis => refine_importance(lod, m.a),
+            Policy::Ours => m.a,
+            Policy::Cesium => self.cesium(m, centre),
+            Policy::Breadth => breadth(m, level),
+        }
+    }
+
+    /// Priority (higher first) of splitting a leaf (also given to the loads
+    /// a split forces on its neighbours, §4.3.3).
+    pub fn split_priority(&self, m: &Measure, level: u8, centre: DVec3) -> f64 {
+        match self.policy {
+            Policy::Thesis => split_importance(m.a),
+            Policy::Ours => m.b,
+            Policy::Cesium => self.cesium(m, centre),
+            Policy::Breadth => breadth(m, level),
+        }
+    }
+
+    /// CesiumJS `computeTileLoadPriority`: `(1 − dir·forward)·distance`,
+    /// smaller sooner, negated here (higher first).
+    fn cesium(&self, m: &Measure, centre: DVec3) -> f64 {
+        let to = centre - self.eye;
+        let len = to.length();
+        if !(len > 1e-5) || !len.is_finite() {
+            return 0.0;
+        }
+        let cos = (to / len).dot(self.forward);
+        let p = (1.0 - cos) * m.dist.max(0.0);
+        if p.is_finite() {
+            -p
+        } else {
+            f64::MIN
+        }
+    }
+
+    /// The screen-space error in pixels of `error` metres at the measure's
+    /// distance (the figure reported for drawn blocks).
+    pub fn screen_error(&self, error: f64, dist: f64) -> f64 {
+        let d = if dist.is_nan() {
+            0.0
+        } else {
+            dist.max(self.near)
+        };
+        self.sse.of(error, d)
+    }
+}
+
+/// Level first, then nearest: `−(level·10¹³ + distance)`.
+fn breadth(m: &Measure, level: u8) -> f64 {
+    let d = if m.dist.is_finite() {
+        m.dist.clamp(0.0, 1e12)
+    } else {
+        1e12
+    };
+    -(level as f64 * 1e13 + d)
+}
+
+/// A usable pixel tolerance.
+pub fn sanitize_tolerance(max_sse: f64) -> f64 {
+    if max_sse.is_finite() && max_sse > 0.0 {
+        max_sse
+    } else {
+        DEFAULT_MAX_SSE_PX
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::visibility::Camera;
+    use proptest::prelude::*;
+
+    fn view(eye: DVec3, fov_deg: f64) -> View {
+        let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
+        c.fov_y = fov_deg.to_radians();
+        View::new(&c, 6.3e6, 6.4e6)
+    }
+
+    #[test]
+    fn names_round_trip() {
+        for p in Policy::ALL {
+            assert_eq!(p.name().parse::<Policy>(), Ok(p));
+        }
+        assert!("cesiumjs".parse::<Policy>().is_err());
+    }
+
+    #[test]
+    fn flat_block_never_refined_cliff_always() {
+        let v = view(DVec3::new(6.4e6, 0.0, 0.0), 60.0);
+        let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
+        let c = DVec3::new(6.37e6, 0.0, 0.0);
+        // Flat: no error at either LOD, a metre away.
+        let flat = r.measure(Kind::Elevation, c, 1000.0, 64.0, 0.0, 0.0);
+        let d = r.leaf(&flat, 1);
+        assert!(!d.load && d.lod == 1);
+        assert!(!r.leaf(&flat, 0).split);
+        // A cliff: 100 m of error 30 km away is ~3 px at 1080 px, 60°.
+        let cliff = r.measure(Kind::Elevation, c, 1000.0, 64.0, 100.0, 50.0);
+        assert!(r.leaf(&cliff, 1).load);
+        assert!(r.leaf(&cliff, 0).split);
+        assert!(r.merge(&cliff).is_none());
+    }
+
+    proptest! {
+        /// Below tolerance: no load and no split; above: always, at every
+        /// distance, FOV and tolerance, the eye inside the planet included.
+        #[test]
+        fn threshold_is_the_tolerance(
+            x in -1e10f64..1e10, fov in 1.0f64..170.0, tol in 0.1f64..16.0,
+            e1 in 0.0f64..1e4, e0 in 0.0f64..1e4, radius in 1.0f64..5e6,
+        ) {
+            let v = view(DVec3::new(x.abs().max(1.0), 1.0, 0.0), fov);
+            let r = Refiner::new(Policy::Ours, &v, 1e4, tol);
+            let c = DVec3::new(6.37e6, 0.0, 0.0);
+            let m = r.measure(Kind::Elevation, c, radius, 64.0, e1, e0);
+            prop_assert!(m.a.is_finite() && m.b.is_finite() && m.a >= 0.0 && m.b >= 0.0);
+            let d1 = r.leaf(&m, 1);
+            prop_assert_eq!(d1.load, m.a > tol);
+            prop_assert!(!d1.split);
+            let d0 = r.leaf(&m, 0);
+            prop_assert_eq!(d0.split, m.b > tol);
+            prop_assert!(!d0.load);
+            if e1 * 1e-9 > 0.0 && m.a > 0.0 {
+                prop_assert!(d1.importance.is_finite());
+            }
+            for p in Policy::ALL {
+                let r = Refiner::new(p, &v, 1e4, tol);
+                let m = r.measure(Kind::Elevation, c, radius, 64.0, e1, e0);
+                prop_assert!(r.load_priority(&m, 1, 10, c).is_finite());
+                prop_assert!(r.split_priority(&m, 10, c).is_finite());
+            }
+        }
+
+        /// The screen-space error falls with distance (monotone) and rises
+        /// with error, from 1 m to 1000 Earth radii.
+        #[test]
+        fn sse_monotone(a in 1.0f64..6.4e9, b in 1.0f64..6.4e9, e in 0.0f64..1e4) {
+            let v = view(DVec3::new(6.4e9, 0.0, 0.0), 60.0);
+            let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
+            let (near, far) = if a <= b { (a, b) } else { (b, a) };
+            prop_assert!(r.screen_error(e, near) >= r.screen_error(e, far));
+            prop_assert!(r.screen_error(e + 1.0, near) >= r.screen_error(e, near));
+        }
+    }
+
+    #[test]
+    fn hysteresis_keeps_lod0_and_delays_merge() {
+        let v = view(DVec3::new(6.4e6, 0.0, 0.0), 60.0);
+        let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
+        let m = Measure {
+            a: 0.7,
+            b: 0.2,
+            dist: 1e3,
+        };
+        assert_eq!(r.leaf(&m, 1).lod, 1);
+        assert_eq!(r.leaf(&m, 0).lod, 0);
+        assert!(r.merge(&m).is_none());
+        let far = Measure { a: 0.2, ..m };
+        assert!(r.merge(&far).is_some());
+    }
+
+    #[test]
+    fn colour_refines_by_texel_size_only_where_it_adds_colour() {
+        let v = view(DVec3::new(6.4e6, 0.0, 0.0), 60.0);
+        let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
+        let c = DVec3::new(6.37e6, 0.0, 0.0);
+        // 100 km block, 128 texels, 30 km away: texels of ~1.1 km, many px.
+        let m = r.measure(Kind::Colour, c, 7.07e4, 128.0, 5.0, 5.0);
+        assert!(r.leaf(&m, 1).load);
+        let uniform = r.measure(Kind::Colour, c, 7.07e4, 128.0, 0.0, 0.0);
+        assert!(!r.leaf(&uniform, 1).load);
+    }
+
+    #[test]
+    fn cesium_prefers_tiles_ahead_and_near() {
+        let v = view(DVec3::new(7e6, 0.0, 0.0), 60.0);
+        let r = Refiner::new(Policy::Cesium, &v, 1e4, 2.0);
+        let ahead = DVec3::new(6.4e6, 0.0, 0.0);
+        let aside = DVec3::new(6.4e6, 3e5, 0.0);
+        let ma = r.measure(Kind::Elevation, ahead, 1e3, 64.0, 10.0, 5.0);
+        let ms = r.measure(Kind::Elevation, aside, 1e3, 64.0, 10.0, 5.0);
+        assert!(r.load_priority(&ma, 1, 5, ahead) > r.load_priority(&ms, 1, 5, aside));
+        let b = Refiner::new(Policy::Breadth, &v, 1e4, 2.0);
+        assert!(b.load_priority(&ma, 1, 9, ahead) < b.load_priority(&ms, 1, 5, aside));
+    }
+}
