@@ -43,8 +43,7 @@ enum Cmd {
         #[arg(
             long,
             value_name = "LAT,LON,RADIUS_KM,LEVEL",
-            allow_hyphen_values = true,
-            requires = "procedural"
+            allow_hyphen_values = true
         )]
         detail: Vec<planet_preprocess::DetailRegion>,
         /// Sphere radius in metres (procedural; default WGS84).
@@ -131,6 +130,11 @@ fn run() -> Result<()> {
             quiet,
             report_memory,
         } => {
+            if !procedural && !detail.is_empty() {
+                bail!(
+                    "--detail needs --procedural (raster trees follow their sources' resolution)"
+                );
+            }
             let stats = if procedural {
                 let datum = match radius {
                     Some(r) => Datum::Sphere { radius: r },

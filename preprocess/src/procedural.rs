@@ -186,7 +186,7 @@ pub fn check_procedural_options(opts: &ProceduralOptions) -> Result<(), BuildErr
             .map_err(|e| BuildError::Options(format!("--detail {r}: {e}")))?;
         if r.level < opts.levels {
             return Err(BuildError::Options(format!(
-                "--detail {r}: LEVEL {} is shallower than --levels {}; expected {DETAIL_FORM}, LEVEL >= --levels",
+                "--detail {r}: LEVEL {} is shallower than --levels {} (LEVEL must be in [--levels, {MAX_PROCEDURAL_LEVEL}])",
                 r.level, opts.levels
             )));
         }
