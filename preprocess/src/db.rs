@@ -51,6 +51,10 @@ pub struct ScannedRecord {
     pub block: BlockId,
     /// Raw payload length.
     pub raw_len: u32,
+    /// Number of child references.
+    pub children: u8,
+    /// The child references' `error` fields (the first `children`).
+    pub child_errors: [f32; 4],
 }
 
 /// Linear scan of `[64, header_offset)`: every record parsed and checked.
@@ -88,6 +92,10 @@ pub fn scan(path: &Path) -> Result<(DbFile, Vec<ScannedRecord>), DbError> {
             tree: rec.header.tree,
             block: rec.header.block,
             raw_len: rec.header.raw_len,
+            children: rec.header.children.len().min(4) as u8,
+            child_errors: std::array::from_fn(|k| {
+                rec.header.children.get(k).map_or(0.0, |c| c.error)
+            }),
         });
         at += len;
     }
@@ -237,6 +245,12 @@ pub struct LevelStats {
     pub records: u64,
     /// Bytes of those records.
     pub bytes: u64,
+    /// Largest `error` of the references to this level's blocks (the
+    /// geometric error in metres, for elevation, of drawing a block at its
+    /// first LOD, plus its children's; thesis §3.3.2).
+    pub max_error: f32,
+    /// Mean of those errors.
+    pub mean_error: f64,
 }
 
 /// Statistics of one tree.
@@ -294,6 +308,24 @@ pub fn inspect(path: &Path) -> Result<InspectReport, DbError> {
         trees[1].block_width = c.block_width;
         trees[1].max_level = c.max_level;
     }
+    // Per tree and level: sum and max of the references' errors.
+    let mut errs: [Vec<(f64, f32)>; 2] = [Vec::new(), Vec::new()];
+    let mut add_err = |tree: usize, level: usize, e: f32| {
+        let v = &mut errs[tree];
+        if v.len() <= level {
+            v.resize(level + 1, (0.0, 0.0));
+        }
+        v[level].0 += e as f64;
+        v[level].1 = v[level].1.max(e);
+    };
+    for r in &h.elevation.root_records {
+        add_err(0, 0, r.error);
+    }
+    if let Some(c) = &h.colour {
+        for r in &c.root_records {
+            add_err(1, 0, r.error);
+        }
+    }
     for s in &scanned {
         let t = &mut trees[s.tree as usize];
         let l = s.block.level as usize;
@@ -305,6 +337,17 @@ pub fn inspect(path: &Path) -> Result<InspectReport, DbError> {
         t.levels[l].bytes += s.size as u64;
         t.records += 1;
         t.bytes += s.size as u64;
+        for &e in &s.child_errors[..s.children as usize] {
+            add_err(s.tree as usize, l + 1, e);
+        }
+    }
+    for (t, e) in trees.iter_mut().zip(&errs) {
+        for l in &mut t.levels {
+            if let Some(&(sum, max)) = e.get(l.level as usize) {
+                l.max_error = max;
+                l.mean_error = sum / l.records.max(1) as f64;
+            }
+        }
     }
     let ew = h.elevation.block_width as u64;
     let e = &mut trees[0];

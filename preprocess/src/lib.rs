@@ -24,7 +24,10 @@ pub mod voidfill;
 
 pub use build::{build, BuildOptions, BuildStats, GridSource};
 pub use error::{BuildError, DbError, GeoError};
-pub use procedural::{build_procedural, default_procedural_options, Procedural, ProceduralOptions};
+pub use procedural::{
+    build_procedural, check_procedural_options, default_procedural_options, DetailRegion,
+    Procedural, ProceduralOptions,
+};
 
 use std::path::Path;
 

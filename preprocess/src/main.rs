@@ -34,9 +34,18 @@ enum Cmd {
         /// Procedural seed.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// Procedural uniform leaf level.
+        /// Procedural uniform leaf level (the base level).
         #[arg(long, default_value_t = 4)]
         levels: u8,
+        /// Procedural detail region, repeatable: a circle of RADIUS_KM around
+        /// LAT,LON (degrees) built down to leaf LEVEL (>= --levels, <= 20),
+        /// graded outside it; colour stays at --levels.
+        #[arg(
+            long,
+            value_name = "LAT,LON,RADIUS_KM,LEVEL",
+            allow_hyphen_values = true
+        )]
+        detail: Vec<planet_preprocess::DetailRegion>,
         /// Sphere radius in metres (procedural; default WGS84).
         #[arg(long, conflicts_with = "wgs84")]
         radius: Option<f64>,
@@ -110,6 +119,7 @@ fn run() -> Result<()> {
             procedural,
             seed,
             levels,
+            detail,
             radius,
             wgs84: _,
             no_colour,
@@ -120,6 +130,11 @@ fn run() -> Result<()> {
             quiet,
             report_memory,
         } => {
+            if !procedural && !detail.is_empty() {
+                bail!(
+                    "--detail needs --procedural (raster trees follow their sources' resolution)"
+                );
+            }
             let stats = if procedural {
                 let datum = match radius {
                     Some(r) => Datum::Sphere { radius: r },
@@ -139,7 +154,9 @@ fn run() -> Result<()> {
                     threads,
                     quiet,
                     max_memory_mb: Some(max_memory),
+                    detail,
                 };
+                planet_preprocess::check_procedural_options(&opts)?;
                 planet_preprocess::build_procedural(&opts, &out)
                     .with_context(|| format!("building {}", out.display()))?
             } else {
@@ -240,8 +257,8 @@ fn print_inspect(r: &db::InspectReport) {
         );
         for l in &t.levels {
             println!(
-                "  level {:2}: {:8} records {:12} bytes",
-                l.level, l.records, l.bytes
+                "  level {:2}: {:8} records {:12} bytes  error max {:9.3} mean {:9.3}",
+                l.level, l.records, l.bytes, l.max_error, l.mean_error
             );
         }
     }

@@ -11,8 +11,12 @@
 //! The colour tree is the elevation tree truncated at the colour source's
 //! level (linked trees, thesis §4.4.1): a truncation at a uniform level keeps
 //! the grading.
+//!
+//! Procedural planets with detail regions ([`plan_for_caps`]) use the same
+//! split-then-grade scheme: a uniform base, deepened inside spherical caps.
 
 use crate::source::ElevationStack;
+use planet_core::cube::{angle_between, normalize, plane_from_angle};
 use planet_core::{BlockId, Edge, Face};
 use std::collections::HashSet;
 
@@ -137,6 +141,77 @@ pub fn plan_for_sources(stack: &ElevationStack, colour_level: Option<u8>, max_le
     }
 }
 
+/// A region of the sphere to deepen: a spherical cap around a unit
+/// direction, split down to `level`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cap {
+    /// Unit direction of the cap's centre.
+    pub centre: [f64; 3],
+    /// Angular radius in radians.
+    pub radius: f64,
+    /// Leaf level inside the cap.
+    pub level: u8,
+}
+
+/// The unit direction of a block's centre and its angular radius: the
+/// largest angle from the centre to a corner. A block is a convex spherical
+/// quadrilateral (its edges are great-circle arcs: constant gnomonic `u` or
+/// `v`), so every point of it lies within that angle of the centre. Corners
+/// come from `planet_core::cube`, so cube edges, corners, poles and the
+/// antimeridian need no special case.
+pub fn block_cap(b: BlockId) -> ([f64; 3], f64) {
+    let (s0, t0, s1, t1) = b.extent();
+    let dir =
+        |s: f64, t: f64| normalize(b.face.cube_point(plane_from_angle(s), plane_from_angle(t)));
+    let centre = dir(0.5 * (s0 + s1), 0.5 * (t0 + t1));
+    let radius = [(s0, t0), (s1, t0), (s0, t1), (s1, t1)]
+        .iter()
+        .map(|&(s, t)| angle_between(centre, dir(s, t)))
+        .fold(0.0, f64::max);
+    (centre, radius)
+}
+
+/// Whether block `b`'s footprint may meet the cap (conservative: the
+/// block's bounding cap meets it).
+pub fn block_meets_cap(b: BlockId, cap: &Cap) -> bool {
+    let (c, r) = block_cap(b);
+    angle_between(cap.centre, c) - r < cap.radius
+}
+
+/// Plan a procedural planet (thesis §4.3.3, §5.3): every block split down to
+/// `levels`; blocks whose footprint meets a cap split further, down to the
+/// cap's level; then graded to [`MAX_GRADE`]. The colour tree is truncated
+/// at `colour_level` (uniform, at most `levels`, so every colour block
+/// exists and the truncation keeps the grading). Without a cap deeper than
+/// `levels` this is the [`Plan::Uniform`] plan.
+pub fn plan_for_caps(levels: u8, caps: &[Cap], colour_level: Option<u8>) -> Plan {
+    if caps.iter().all(|c| c.level <= levels) {
+        return Plan::Uniform {
+            levels,
+            colour_level,
+        };
+    }
+    let mut split = HashSet::new();
+    let mut stackv: Vec<BlockId> = Face::ALL.iter().map(|&f| BlockId::root(f)).collect();
+    while let Some(b) = stackv.pop() {
+        let deeper = b.level < levels
+            || caps
+                .iter()
+                .any(|c| b.level < c.level && block_meets_cap(b, c));
+        if deeper {
+            split.insert(b);
+            stackv.extend(b.children());
+        }
+    }
+    grade(&mut split);
+    let deepest = split.iter().map(|b| b.level + 1).max().unwrap_or(0);
+    Plan::Explicit {
+        split,
+        max_level: deepest,
+        colour_level,
+    }
+}
+
 /// Split leaves until no two neighbouring leaves differ by more than
 /// [`MAX_GRADE`] levels (classic restricted-quadtree balancing).
 pub fn grade(split: &mut HashSet<BlockId>) {
@@ -204,5 +279,114 @@ mod tests {
             }
         }
         assert!(crossed, "grading reached the neighbouring faces");
+    }
+
+    fn dir(lat: f64, lon: f64) -> [f64; 3] {
+        planet_core::cube::direction_from_lat_lon(lat.to_radians(), lon.to_radians())
+    }
+
+    #[test]
+    fn caps_deepen_only_their_region_and_are_graded() {
+        // A cap on the north pole (a face centre) and one on a cube corner
+        // at the antimeridian (three faces meet there).
+        let corner_lat = (1.0f64 / 2f64.sqrt()).atan().to_degrees();
+        let caps = [
+            Cap {
+                centre: dir(90.0, 0.0),
+                radius: 2.0e-3,
+                level: 9,
+            },
+            Cap {
+                centre: dir(corner_lat, 135.0),
+                radius: 2.0e-3,
+                level: 9,
+            },
+            // On the antimeridian and on the edge of faces 0 and 5.
+            Cap {
+                centre: dir(45.0, 180.0),
+                radius: 2.0e-3,
+                level: 9,
+            },
+        ];
+        let plan = plan_for_caps(3, &caps, Some(3));
+        let Plan::Explicit {
+            split, max_level, ..
+        } = &plan
+        else {
+            panic!("expected an explicit plan");
+        };
+        assert_eq!(*max_level, 9);
+        let ls = leaves(split);
+        // Every leaf meeting a cap is at level 9; every level-9 leaf is the
+        // child of a block meeting one.
+        for leaf in &ls {
+            if caps.iter().any(|c| block_meets_cap(*leaf, c)) {
+                assert_eq!(leaf.level, 9, "{leaf:?}");
+            }
+            if leaf.level == 9 {
+                let p = leaf.ancestor(8);
+                assert!(caps.iter().any(|c| block_meets_cap(p, c)), "{leaf:?}");
+            }
+            assert!(leaf.level >= 3);
+        }
+        // The corner cap reached all three faces around the corner.
+        let faces: HashSet<Face> = ls
+            .iter()
+            .filter(|b| b.level == 9 && block_meets_cap(**b, &caps[1]))
+            .map(|b| b.face)
+            .collect();
+        assert_eq!(faces.len(), 3, "{faces:?}");
+        let faces: HashSet<Face> = ls
+            .iter()
+            .filter(|b| b.level == 9 && block_meets_cap(**b, &caps[2]))
+            .map(|b| b.face)
+            .collect();
+        assert_eq!(faces.len(), 2, "{faces:?}");
+        // Graded.
+        for leaf in &ls {
+            for e in Edge::ALL {
+                let (n, _) = leaf.neighbour(e);
+                if let Some(c) = leaf_containing(split, n) {
+                    assert!(leaf.level <= c.level + MAX_GRADE);
+                }
+            }
+        }
+        // Colour stays uniform at the base level.
+        assert!(plan.colour_split(
+            BlockId::new(Face::NORTH, 2, 0, 0).unwrap_or(BlockId::root(Face::NORTH))
+        ));
+        let (_, colour_blocks) = plan.block_counts();
+        assert_eq!(colour_blocks, 6 * 85);
+        // No cap deeper than the base: the uniform plan.
+        assert!(matches!(
+            plan_for_caps(
+                3,
+                &[Cap {
+                    level: 3,
+                    ..caps[0]
+                }],
+                None
+            ),
+            Plan::Uniform { levels: 3, .. }
+        ));
+    }
+
+    #[test]
+    fn block_cap_contains_its_corners_and_centre() {
+        let b = BlockId::new(Face::NORTH, 4, 3, 9).unwrap_or(BlockId::root(Face::NORTH));
+        let (c, r) = block_cap(b);
+        assert!(r > 0.0 && r < 0.1);
+        let cap = Cap {
+            centre: c,
+            radius: 1e-9,
+            level: 5,
+        };
+        assert!(block_meets_cap(b, &cap));
+        let far = Cap {
+            centre: [-c[0], -c[1], -c[2]],
+            radius: 1.0,
+            level: 5,
+        };
+        assert!(!block_meets_cap(b, &far));
     }
 }

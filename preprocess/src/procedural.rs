@@ -1,28 +1,136 @@
 //! A deterministic procedural planet, the project's own embedded default
 //! database (instead of real data), built with the same Alg. 5.2 pipeline
-//! (thesis §5.3) on a uniform tree.
+//! (thesis §5.3), on a uniform tree or, with detail regions
+//! ([`DetailRegion`]), on a tree deepened inside spherical caps and graded
+//! (thesis §4.3.3, [`crate::plan::plan_for_caps`]).
 //!
 //! Elevation is a function of the unit direction (so it is seamless over cube
 //! edges and poles): domain-warped fBm continents, ridged mountain ranges,
-//! and fBm detail down to about two samples at the leaf level, from about
-//! −8000 m to +8000 m. For speed, everything but the three finest detail
-//! octaves is evaluated in f64 on a lattice of every 8th sample of a leaf and
-//! interpolated bilinearly; a sample on a block edge then depends only on
-//! lattice points on that edge, whose directions are bit-identical from both
-//! blocks (thesis-notes §9.4), so shared edge samples agree exactly. The
-//! three finest octaves are evaluated per sample, a row at a time, in f32
-//! within each noise cell ([`DetailOctave`]), again a function of the
-//! sample's direction alone. Colour is a function of altitude, latitude and
-//! a moisture field: ocean blues, beaches, greens, deserts, rock, snow caps
-//! and polar ice ([`palette`], f32, branch-free).
+//! and fBm detail down to about two samples at the deepest leaf level, from
+//! about −8000 m to +8000 m. For speed, everything but the finest detail
+//! octaves is evaluated in f64 on a lattice of every 8th sample of the *base*
+//! level (`levels`, the shallowest leaf level) and interpolated bilinearly; a
+//! leaf at any level `L ≥ levels` interpolates that same lattice at each
+//! sample's global index (power-of-two index arithmetic, exact in f64, one
+//! expression order), so a sample's value does not depend on the level of
+//! the leaf that computes it. A sample on a block edge depends only on
+//! lattice points whose directions are bit-identical from both blocks
+//! (thesis-notes §9.4), so shared edge samples agree exactly, across faces
+//! and across a leaf/split-block boundary. The three octaves below the base
+//! level's sample rate and every octave finer than the base lattice can
+//! carry, down to the deepest level's ~2-sample frequency, are evaluated per
+//! sample, a row at a time, in f32 within each noise cell
+//! ([`DetailOctave`]), again a function of the sample's direction alone.
+//!
+//! The octaves finer than the base planet's own (present only with detail
+//! regions) are *rough*: their amplitude falls by [`ROUGH_RATIO`] per octave
+//! instead of 0.5, scaled by a gain that is large in mountains and zero in
+//! the open ocean, so that slopes at 10–100 m scale reach a few tenths in
+//! mountains and a deep tree has a geometric error worth streaming. A
+//! uniform planet's octave list ends at its own leaf level, so its values are
+//! unchanged by them. Colour is a function of altitude, latitude and a
+//! moisture field: ocean blues, beaches, greens, deserts, rock, snow caps and
+//! polar ice ([`palette`], f32, branch-free).
 
 use crate::build::{build, BuildOptions, BuildStats, GridSource, CW, EW};
 use crate::error::BuildError;
-use crate::plan::Plan;
-use planet_core::cube::{normalize, plane_from_angle, sample_coord};
+use crate::plan::{plan_for_caps, Cap, Plan};
+use planet_core::cube::{
+    angle_between, direction_from_lat_lon, normalize, plane_from_angle, sample_coord,
+};
 use planet_core::lod::{self, Rgb};
 use planet_core::{BlockId, Datum};
 use std::path::Path;
+use std::str::FromStr;
+
+/// Deepest level a procedural tree may have.
+pub const MAX_PROCEDURAL_LEVEL: u8 = 20;
+
+/// A region of a procedural planet built deeper than the base: a circle of
+/// `radius_km` around (`lat`, `lon`) in degrees, down to leaf `level`
+/// (`--detail LAT,LON,RADIUS_KM,LEVEL`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DetailRegion {
+    /// Latitude of the centre in degrees, in [-90, 90].
+    pub lat: f64,
+    /// Longitude of the centre in degrees, in [-180, 180].
+    pub lon: f64,
+    /// Radius in kilometres (> 0), measured on a sphere of the datum's
+    /// equatorial radius.
+    pub radius_km: f64,
+    /// Leaf level inside the region (at least the base levels, at most
+    /// [`MAX_PROCEDURAL_LEVEL`]).
+    pub level: u8,
+}
+
+/// The expected form of a detail region, for error messages.
+pub const DETAIL_FORM: &str = "LAT,LON,RADIUS_KM,LEVEL with LAT in [-90, 90], LON in [-180, 180], RADIUS_KM > 0 and LEVEL <= 20 (degrees, kilometres), e.g. 46.85,-121.76,60,14";
+
+impl FromStr for DetailRegion {
+    type Err = String;
+
+    fn from_str(v: &str) -> Result<DetailRegion, String> {
+        let bad = |why: &str| format!("bad detail region '{v}': {why}; expected {DETAIL_FORM}");
+        let parts: Vec<&str> = v.split(',').map(str::trim).collect();
+        let [lat, lon, radius, level] = parts.as_slice() else {
+            return Err(bad(&format!("{} fields, not 4", parts.len())));
+        };
+        let num = |name: &str, s: &str| -> Result<f64, String> {
+            match s.parse::<f64>() {
+                Ok(x) if x.is_finite() => Ok(x),
+                _ => Err(bad(&format!("{name} '{s}' is not a finite number"))),
+            }
+        };
+        let lat = num("LAT", lat)?;
+        let lon = num("LON", lon)?;
+        let radius_km = num("RADIUS_KM", radius)?;
+        let level: u8 = level
+            .parse()
+            .map_err(|_| bad(&format!("LEVEL '{level}' is not an integer in 0..=20")))?;
+        if !(-90.0..=90.0).contains(&lat) {
+            return Err(bad(&format!("LAT {lat} is outside [-90, 90]")));
+        }
+        if !(-180.0..=180.0).contains(&lon) {
+            return Err(bad(&format!("LON {lon} is outside [-180, 180]")));
+        }
+        if radius_km <= 0.0 {
+            return Err(bad(&format!("RADIUS_KM {radius_km} is not > 0")));
+        }
+        if level > MAX_PROCEDURAL_LEVEL {
+            return Err(bad(&format!(
+                "LEVEL {level} is deeper than {MAX_PROCEDURAL_LEVEL}"
+            )));
+        }
+        Ok(DetailRegion {
+            lat,
+            lon,
+            radius_km,
+            level,
+        })
+    }
+}
+
+impl std::fmt::Display for DetailRegion {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{},{},{},{}",
+            self.lat, self.lon, self.radius_km, self.level
+        )
+    }
+}
+
+impl DetailRegion {
+    /// The region as a cap on the unit sphere (radius over the datum's
+    /// equatorial radius).
+    pub fn cap(&self, datum: &Datum) -> Cap {
+        Cap {
+            centre: direction_from_lat_lon(self.lat.to_radians(), self.lon.to_radians()),
+            radius: self.radius_km * 1000.0 / datum.equatorial_radius(),
+            level: self.level,
+        }
+    }
+}
 
 /// Options of a procedural planet.
 #[derive(Debug, Clone)]
@@ -42,6 +150,8 @@ pub struct ProceduralOptions {
     /// Memory bound in MiB for the in-flight grids (`None`: unbounded; see
     /// [`BuildOptions::grid_memory`]).
     pub max_memory_mb: Option<usize>,
+    /// Regions built deeper than `levels` (empty: a uniform planet).
+    pub detail: Vec<DetailRegion>,
 }
 
 /// The small default planet other crates embed: seed 1, 4 levels (blocks of
@@ -56,17 +166,38 @@ pub fn default_procedural_options() -> ProceduralOptions {
         threads: None,
         quiet: true,
         max_memory_mb: None,
+        detail: Vec::new(),
     }
 }
 
-/// Build a procedural planet database at `out`.
-pub fn build_procedural(opts: &ProceduralOptions, out: &Path) -> Result<BuildStats, BuildError> {
-    if opts.levels > 20 {
+/// Check the options: `levels` and every region's level at most
+/// [`MAX_PROCEDURAL_LEVEL`], regions' levels at least `levels`, their
+/// centres and radii in range.
+pub fn check_procedural_options(opts: &ProceduralOptions) -> Result<(), BuildError> {
+    if opts.levels > MAX_PROCEDURAL_LEVEL {
         return Err(BuildError::Options(format!(
-            "--levels {} is too deep (at most 20)",
+            "--levels {} is too deep (at most {MAX_PROCEDURAL_LEVEL})",
             opts.levels
         )));
     }
+    for r in &opts.detail {
+        // Re-parse the printed form: one place checks the ranges.
+        DetailRegion::from_str(&r.to_string())
+            .map_err(|e| BuildError::Options(format!("--detail {r}: {e}")))?;
+        if r.level < opts.levels {
+            return Err(BuildError::Options(format!(
+                "--detail {r}: LEVEL {} is shallower than --levels {} (LEVEL must be in [--levels, {MAX_PROCEDURAL_LEVEL}])",
+                r.level, opts.levels
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Build a procedural planet database at `out` (thesis §5.3, Alg. 5.2, on
+/// the plan of [`Procedural::plan`]).
+pub fn build_procedural(opts: &ProceduralOptions, out: &Path) -> Result<BuildStats, BuildError> {
+    check_procedural_options(opts)?;
     let src = Procedural::new(opts);
     let plan = src.plan();
     build(
@@ -88,40 +219,89 @@ pub struct Procedural {
     levels: u8,
     datum: Datum,
     colour: bool,
-    /// Number of detail octaves.
+    /// Number of detail octaves of the base level (the lattice's and the
+    /// [`HIGH_OCTAVES`] per-sample ones).
     detail_octaves: u32,
+    /// Number of detail octaves of the deepest level: octaves
+    /// `detail_octaves..all_octaves` are the rough per-sample ones.
+    all_octaves: u32,
+    /// The tree shape.
+    plan: Plan,
+    /// The detail regions (for the description).
+    detail: Vec<DetailRegion>,
+    /// The regions deeper than the base: where the rough octaves apply.
+    rough_caps: Vec<Cap>,
 }
 
 const LATTICE: usize = 8;
 const HIGH_OCTAVES: u32 = 3;
 const DETAIL_F0: f64 = 4.0;
+/// Amplitude ratio per octave of the rough octaves (fBm's is 0.5): the
+/// amplitude ∝ wavelength^0.62, so slopes grow by 1.3 per finer octave.
+pub const ROUGH_RATIO: f64 = 0.65;
+/// The first rough octave: octave 10 has a wavelength of about 1.6 km on
+/// the Earth (frequency `DETAIL_F0·2^10` per radian).
+pub const ROUGH_FIRST: u32 = 10;
+/// Amplitude in metres of rough octave 10, before the rough gain.
+const ROUGH_A10: f64 = 120.0;
+
+/// Number of detail octaves at a leaf level: the finest has a wavelength of
+/// about two samples.
+fn octaves_at(level: u8) -> u32 {
+    // Sample spacing at the leaves, in radians; finest octave ≈ 2 samples.
+    let d = std::f64::consts::FRAC_PI_2 / (EW as f64 * 2f64.powi(level as i32));
+    let fmax = 1.0 / (2.0 * d);
+    ((fmax / DETAIL_F0).log2().floor() as i64 + 1).max(HIGH_OCTAVES as i64 + 1) as u32
+}
+
+/// Amplitude in metres (before the rough gain) of rough octave `k`.
+fn rough_amplitude(k: u32) -> f64 {
+    ROUGH_A10 * ROUGH_RATIO.powi(k as i32 - ROUGH_FIRST as i32)
+}
 
 impl Procedural {
     /// A generator for these options.
+    ///
+    /// Regions are used as given (see [`check_procedural_options`]); a
+    /// region level is clamped to `[levels, MAX_PROCEDURAL_LEVEL]`.
     pub fn new(opts: &ProceduralOptions) -> Procedural {
-        // Sample spacing at the leaves, in radians; finest octave ≈ 2 samples.
-        let d = std::f64::consts::FRAC_PI_2 / (EW as f64 * 2f64.powi(opts.levels as i32));
-        let fmax = 1.0 / (2.0 * d);
-        let detail_octaves =
-            ((fmax / DETAIL_F0).log2().floor() as i64 + 1).max(HIGH_OCTAVES as i64 + 1) as u32;
+        let caps: Vec<Cap> = opts
+            .detail
+            .iter()
+            .map(|r| Cap {
+                level: r
+                    .level
+                    .clamp(opts.levels, MAX_PROCEDURAL_LEVEL.max(opts.levels)),
+                ..r.cap(&opts.datum)
+            })
+            .collect();
+        // Colour stays at the base level: every colour block then exists
+        // and the colour tree is the uniform truncation `Plan::colour_split`
+        // describes (deep colour would multiply the build's cost).
+        let plan = plan_for_caps(opts.levels, &caps, opts.colour.then_some(opts.levels));
         Procedural {
             seed: opts.seed,
             levels: opts.levels,
             datum: opts.datum,
             colour: opts.colour,
-            detail_octaves,
+            detail_octaves: octaves_at(opts.levels),
+            all_octaves: octaves_at(plan.max_level()),
+            plan,
+            detail: opts.detail.clone(),
+            rough_caps: caps.into_iter().filter(|c| c.level > opts.levels).collect(),
         }
     }
 
-    /// The uniform tree plan.
+    /// The tree plan: uniform at `levels`, or deepened in the detail regions
+    /// and graded ([`plan_for_caps`], thesis §4.3.3).
     pub fn plan(&self) -> Plan {
-        Plan::Uniform {
-            levels: self.levels,
-            colour_level: self.colour.then_some(self.levels),
-        }
+        self.plan.clone()
     }
 
-    /// Low-frequency fields at a direction: (elevation m, roughness, moisture).
+    /// Low-frequency fields at a direction: (elevation m, detail gain,
+    /// rough gain). The rough gain is exactly 0 where `land` is (the open
+    /// ocean), which lets a leaf skip the rough octaves without changing a
+    /// value.
     fn low(&self, p: [f64; 3]) -> [f64; 3] {
         let s = self.seed;
         let q = [
@@ -148,18 +328,25 @@ impl Procedural {
             f *= 2.0;
             a *= 0.5;
         }
-        let moisture = fbm(s ^ 0x77, scale(p, 2.2), 3);
-        [h, 0.4 + 2.0 * mountains, moisture]
+        // Rough gain: 0 in the open ocean (`land` is exactly 0 there), 0.05
+        // on lowland plains, about 1 on high ground, more in ranges.
+        let rough = land * (0.05 + 0.95 * smoothstep(0.0, 1000.0, h)) * (1.0 + mountains);
+        [h, 0.4 + 2.0 * mountains, rough]
     }
 
     /// The per-sample detail octaves, each with its frequency and amplitude
     /// as the lattice octaves' loop would continue them.
+    ///
+    /// These are the base level's [`HIGH_OCTAVES`] and, in a deeper tree,
+    /// the fBm octaves coarser than [`ROUGH_FIRST`] that the base lattice
+    /// cannot carry.
     fn high_octaves(&self) -> Vec<DetailOctave> {
         let k0 = self.detail_octaves.saturating_sub(HIGH_OCTAVES);
+        let k1 = self.detail_octaves.max(self.all_octaves.min(ROUGH_FIRST));
         let mut f = DETAIL_F0 * 2f64.powi(k0 as i32);
         let mut a = 420.0 * 0.5f64.powi(k0 as i32);
         let mut out = Vec::with_capacity(HIGH_OCTAVES as usize);
-        for k in k0..self.detail_octaves {
+        for k in k0..k1 {
             out.push(DetailOctave::new(self.seed ^ (0x100 + k as u64), f, a));
             f *= 2.0;
             a *= 0.5;
@@ -167,53 +354,126 @@ impl Procedural {
         out
     }
 
-    fn lattice(&self, b: BlockId, us: &[f64], vs: &[f64]) -> Vec<[f64; 3]> {
-        let n = EW / LATTICE + 1;
-        let mut out = Vec::with_capacity(n * n);
-        for j in 0..n {
-            for i in 0..n {
-                let p = normalize(b.face.cube_point(us[i * LATTICE], vs[j * LATTICE]));
-                out.push(self.low(p));
+    /// Where the rough octaves apply: 1 within half the radius of a region
+    /// deeper than the base, fading smoothly to exactly 0 at its radius
+    /// (rough detail outside the deep leaves would only alias). A function
+    /// of the direction, evaluated on the base lattice.
+    fn rough_mask(&self, p: [f64; 3]) -> f64 {
+        self.rough_caps
+            .iter()
+            .map(|c| 1.0 - smoothstep(0.5 * c.radius, c.radius, angle_between(p, c.centre)))
+            .fold(0.0, f64::max)
+    }
+
+    /// The rough per-sample octaves (from the first octave the base planet
+    /// lacks, but not coarser than [`ROUGH_FIRST`], to `all_octaves`; none
+    /// for a uniform planet): fBm's frequencies, amplitudes falling by
+    /// [`ROUGH_RATIO`] per octave ([`rough_amplitude`]).
+    fn rough_octaves(&self) -> Vec<DetailOctave> {
+        (self.detail_octaves.max(ROUGH_FIRST)..self.all_octaves)
+            .map(|k| {
+                DetailOctave::new(
+                    self.seed ^ (0x100 + k as u64),
+                    DETAIL_F0 * 2f64.powi(k as i32),
+                    rough_amplitude(k),
+                )
+            })
+            .collect()
+    }
+
+    /// The low-frequency fields on the base lattice points
+    /// `(x0 + i, y0 + j)`, `i < nx`, `j < ny`, of `face`: lattice point `x`
+    /// is base-level sample `LATTICE·x` (the base face map is
+    /// `EW·2^levels` samples wide).
+    fn lattice(
+        &self,
+        face: planet_core::Face,
+        x0: u64,
+        y0: u64,
+        nx: usize,
+        ny: usize,
+    ) -> Vec<[f64; 3]> {
+        let n = (EW as u64) << self.levels;
+        let axis = |start: u64, count: usize| -> Vec<f64> {
+            (0..count as u64)
+                .map(|k| plane_from_angle(sample_coord((start + k) * LATTICE as u64, n)))
+                .collect()
+        };
+        let (us, vs) = (axis(x0, nx), axis(y0, ny));
+        let mut out = Vec::with_capacity(nx * ny);
+        for v in &vs {
+            for u in &us {
+                let p = normalize(face.cube_point(*u, *v));
+                let mut l = self.low(p);
+                l[2] *= self.rough_mask(p);
+                out.push(l);
             }
         }
         out
     }
 
-    /// Elevation (metres, before quantisation) of a leaf's samples.
+    /// Elevation (metres, quantised) of a leaf's samples.
     ///
-    /// Per sample: the bilinear lattice fields and the [`HIGH_OCTAVES`] detail
-    /// octaves ([`DetailOctave`], a row of samples at a time). The lattice fields are interpolated between
-    /// lattice rows once per sample row (9 columns), then along the row; on
-    /// a block edge this is the same `a + (b − a)·t` of the two lattice points
-    /// on the edge whichever way the edge runs in the block.
-    fn leaf_elevation(&self, b: BlockId) -> (Vec<i16>, Vec<[f64; 3]>) {
+    /// Per sample: the bilinear base-lattice fields, the [`HIGH_OCTAVES`]
+    /// detail octaves times the detail gain and, below the base level, the
+    /// rough octaves times the rough gain ([`DetailOctave`], a row of samples
+    /// at a time). A leaf at level `L = levels + d` sees lattice cells of
+    /// `LATTICE·2^d` of its samples; a sample at global index `g` lies in
+    /// lattice cell `g / (LATTICE·2^d)` at fraction `(g mod LATTICE·2^d) /
+    /// (LATTICE·2^d)` (exact), the same cell and fraction whatever level
+    /// computes it. The lattice fields are interpolated between lattice rows
+    /// once per sample row, then along the row; on a block edge this is the
+    /// same `a + (b − a)·t` of the same two lattice points from both sides
+    /// (the face axes run the same way along shared edges).
+    fn leaf_elevation(&self, b: BlockId) -> Vec<i16> {
         let (us, vs) = plane_axes(b);
-        let lat = self.lattice(b, &us, &vs);
         let side = EW + 1;
-        let n = EW / LATTICE + 1;
+        // Leaves are never shallower than the base level.
+        let d = b.level.saturating_sub(self.levels) as u32;
+        let cell = (LATTICE as u64) << d;
+        let (gx, gy) = (b.x as u64 * EW as u64, b.y as u64 * EW as u64);
+        let span = |g0: u64| -> (u64, usize) {
+            let first = g0 / cell;
+            let last = (g0 + EW as u64).div_ceil(cell);
+            (first, (last - first + 1) as usize)
+        };
+        let ((lx0, nx), (ly0, ny)) = (span(gx), span(gy));
+        let lat = self.lattice(b.face, lx0, ly0, nx, ny);
+        // Per axis: (lattice index, next lattice index, fraction).
+        let axis = |g0: u64, l0: u64, n: usize| -> Vec<(usize, usize, f64)> {
+            (0..side as u64)
+                .map(|i| {
+                    let g = g0 + i;
+                    let li = (g / cell - l0) as usize;
+                    (li, (li + 1).min(n - 1), (g % cell) as f64 / cell as f64)
+                })
+                .collect()
+        };
+        let cols = axis(gx, lx0, nx);
+        let rows = axis(gy, ly0, ny);
         let mut octaves = self.high_octaves();
-        let cols: Vec<(usize, usize, f64)> = (0..side)
-            .map(|i| {
-                let li = i / LATTICE;
-                (
-                    li,
-                    (li + 1).min(n - 1),
-                    (i % LATTICE) as f64 / LATTICE as f64,
-                )
-            })
-            .collect();
+        // The rough octaves are skipped where the rough gain is exactly 0 at
+        // every lattice point the leaf interpolates (then every sample's
+        // rough term is ±0 and adding it changes nothing).
+        let mut rough_octs = if lat.iter().any(|l| l[2] != 0.0) {
+            self.rough_octaves()
+        } else {
+            Vec::new()
+        };
+        let rough_on = !rough_octs.is_empty();
         let mut out = vec![0i16; side * side];
-        // Per sample row: the lattice fields (base elevation, detail gain)
-        // interpolated between the two lattice rows, at each lattice column.
-        let mut base = vec![0f64; n];
-        let mut gain = vec![0f64; n];
-        for j in 0..side {
-            let (lj, fj) = (j / LATTICE, (j % LATTICE) as f64 / LATTICE as f64);
-            let lj1 = (lj + 1).min(n - 1);
-            let (r0, r1) = (&lat[lj * n..lj * n + n], &lat[lj1 * n..lj1 * n + n]);
-            for (k, (bk, gk)) in base.iter_mut().zip(gain.iter_mut()).enumerate() {
-                *bk = r0[k][0] + (r1[k][0] - r0[k][0]) * fj;
-                *gk = r0[k][1] + (r1[k][1] - r0[k][1]) * fj;
+        // Per sample row: the lattice fields (base elevation, detail gain,
+        // rough gain) interpolated between the two lattice rows, at each
+        // lattice column.
+        let mut base = vec![0f64; nx];
+        let mut gain = vec![0f64; nx];
+        let mut rgain = vec![0f64; nx];
+        for (j, &(lj, lj1, fj)) in rows.iter().enumerate() {
+            let (r0, r1) = (&lat[lj * nx..lj * nx + nx], &lat[lj1 * nx..lj1 * nx + nx]);
+            for k in 0..nx {
+                base[k] = r0[k][0] + (r1[k][0] - r0[k][0]) * fj;
+                gain[k] = r0[k][1] + (r1[k][1] - r0[k][1]) * fj;
+                rgain[k] = r0[k][2] + (r1[k][2] - r0[k][2]) * fj;
             }
             let (mut px, mut py, mut pz) = ([0f64; ROW], [0f64; ROW], [0f64; ROW]);
             for i in 0..ROW {
@@ -229,23 +489,33 @@ impl Procedural {
             for oct in octaves.iter_mut() {
                 oct.add_row(&px, &py, &pz, &mut hi);
             }
+            let mut rough = [0f32; ROW];
+            for oct in rough_octs.iter_mut() {
+                oct.add_row(&px, &py, &pz, &mut rough);
+            }
             let row = &mut out[j * side..(j + 1) * side];
             for (i, o) in row.iter_mut().enumerate() {
                 let (li, li1, fi) = cols[i];
                 let h0 = base[li] + (base[li1] - base[li]) * fi;
                 let g = gain[li] + (gain[li1] - gain[li]) * fi;
-                *o = round_to_i16(h0 + g * hi[i] as f64);
+                let v = h0 + g * hi[i] as f64;
+                *o = round_to_i16(if rough_on {
+                    let gr = rgain[li] + (rgain[li1] - rgain[li]) * fi;
+                    v + gr * rough[i] as f64
+                } else {
+                    v
+                });
             }
         }
-        (out, lat)
+        out
     }
 
     /// The exact re-projected full elevation grid `(W+1)²` (stored units =
     /// metres) of any block: a leaf's generated grid, or an inner block's
     /// samples gathered from its descendants' leaves (what the database holds).
     pub fn elevation_grid(&self, b: BlockId) -> Vec<i16> {
-        if b.level >= self.levels {
-            return self.leaf_elevation(b).0;
+        if !self.plan.elevation_split(b) {
+            return self.leaf_elevation(b);
         }
         let side = EW + 1;
         let mut full = vec![0i16; side * side];
@@ -258,7 +528,7 @@ impl Procedural {
 
     /// The exact full colour grid `Wc²` of any block (what the database holds).
     pub fn colour_grid(&self, b: BlockId) -> Vec<Rgb> {
-        if b.level >= self.levels {
+        if !self.plan.colour_split(b) {
             let e = self.elevation_grid(b);
             return self.colour_for(b, &e);
         }
@@ -478,7 +748,7 @@ fn palette(h: f32, lat: f32, moisture: f32, slope: f32) -> [f32; 3] {
 
 impl GridSource for Procedural {
     fn elevation_leaf(&self, b: BlockId, out: &mut [i16]) -> Result<(), BuildError> {
-        let (g, _) = self.leaf_elevation(b);
+        let g = self.leaf_elevation(b);
         out.copy_from_slice(&g);
         Ok(())
     }
@@ -500,10 +770,15 @@ impl GridSource for Procedural {
     }
 
     fn description(&self) -> String {
-        format!(
+        let mut d = format!(
             "procedural planet: seed {}, {} levels, {:?}",
             self.seed, self.levels, self.datum
-        )
+        );
+        // Uniform planets keep the description (and bytes) they had.
+        for r in &self.detail {
+            d.push_str(&format!(", detail {r}"));
+        }
+        d
     }
 }
 
@@ -943,6 +1218,143 @@ mod tests {
             }
         }
         assert!(spread > 0.3, "noise too flat: {spread}");
+    }
+
+    fn deep(levels: u8, region: &str) -> Procedural {
+        Procedural::new(&ProceduralOptions {
+            levels,
+            detail: vec![region.parse().expect("region")],
+            ..default_procedural_options()
+        })
+    }
+
+    /// A sample's value does not depend on the level of the leaf computing
+    /// it: a split block computed as if it were a leaf equals the samples
+    /// gathered from its deeper leaves, bit for bit.
+    #[test]
+    fn values_do_not_depend_on_the_leaf_level() {
+        // Base lattice every ~78 km, a 300 km region (rough within it), to
+        // level 8 (finest octave 10: the first rough one).
+        let g = deep(4, "46.85,-121.76,300,8");
+        let Plan::Explicit { split, .. } = g.plan() else {
+            panic!("explicit plan expected");
+        };
+        assert_eq!(g.plan().max_level(), 8);
+        assert_eq!(g.rough_octaves().len(), 1);
+        assert_eq!(g.high_octaves().len(), 6);
+        let mut smooth = g.clone();
+        smooth.rough_caps.clear();
+        let mut checked = 0;
+        let mut rough = 0;
+        for b in &split {
+            if b.level >= 4 {
+                let as_leaf = g.leaf_elevation(*b);
+                let gathered = g.elevation_grid(*b);
+                assert_eq!(as_leaf, gathered, "{b:?}");
+                checked += 1;
+                // The same block without its rough octaves differs.
+                rough += (smooth.leaf_elevation(*b) != as_leaf) as usize;
+            }
+        }
+        assert!(
+            checked >= 8 && rough >= 4,
+            "{checked} blocks, {rough} rough"
+        );
+    }
+
+    /// The rough octaves make a deep planet's fine levels rough on high
+    /// ground (slopes of tenths at ~10 m) while the uniform planet of the same
+    /// seed is smooth there and lowlands stay smooth.
+    #[test]
+    fn deep_levels_are_rough_in_the_mountains() {
+        let g = deep(6, "27.95,86.93,60,14");
+        let p = direction_from_lat_lon(27.95f64.to_radians(), 86.93f64.to_radians());
+        let fc = planet_core::cube::FaceCoord::from_direction(p);
+        let n = 1u32 << 14;
+        let cell = |v: f64| ((v * n as f64) as u32).min(n - 1);
+        let b = BlockId::new(fc.face, 14, cell(fc.s), cell(fc.t)).expect("block");
+        let mean_slope = |e: &[i16], spacing: f64| {
+            let side = EW + 1;
+            let mut s = 0f64;
+            for j in 0..side {
+                for i in 0..EW {
+                    s += ((e[j * side + i + 1] - e[j * side + i]) as f64).abs();
+                }
+            }
+            s / (side * EW) as f64 / spacing
+        };
+        // 64 samples over ~611 m at level 14.
+        let leaf = g.leaf_elevation(b);
+        let slope = mean_slope(&leaf, 9.5);
+        assert!(g.low(p)[0] > 1000.0, "high ground expected");
+        assert!((0.15..1.0).contains(&slope), "mean slope {slope}");
+        assert!(crate::build::elevation_lod_error(&leaf, EW) >= 3.0);
+        // A uniform level-6 planet's own leaves at the same place: fBm
+        // detail only, slopes of thousandths at ~150 m spacing.
+        let u = gen(6);
+        let ub = b.ancestor(6);
+        let ue = u.leaf_elevation(ub);
+        assert!(mean_slope(&ue, 150.0) < 0.05);
+        // Outside the region: no rough octaves.
+        assert_eq!(g.rough_mask(direction_from_lat_lon(0.5, 1.0)), 0.0);
+        assert_eq!(g.rough_mask(p), 1.0);
+        // Deep ocean: no rough gain at all.
+        let mut oceans = 0;
+        for lat in (-60..=60).step_by(10) {
+            for lon in (-180..180).step_by(10) {
+                let l = g.low(direction_from_lat_lon(
+                    (lat as f64).to_radians(),
+                    (lon as f64).to_radians(),
+                ));
+                if l[0] < -3000.0 {
+                    assert_eq!(l[2], 0.0, "{lat} {lon}");
+                    oceans += 1;
+                }
+            }
+        }
+        assert!(oceans > 20, "{oceans} deep-ocean points");
+    }
+
+    #[test]
+    fn detail_regions_parse_and_reject_bad_input() {
+        let r: DetailRegion = "46.85,-121.76,60,14".parse().expect("valid");
+        assert_eq!(
+            r,
+            DetailRegion {
+                lat: 46.85,
+                lon: -121.76,
+                radius_km: 60.0,
+                level: 14
+            }
+        );
+        for bad in [
+            "",
+            "1,2,3",
+            "1,2,3,4,5",
+            "x,2,3,4",
+            "91,0,1,5",
+            "0,-181,1,5",
+            "0,0,0,5",
+            "0,0,-1,5",
+            "0,0,NaN,5",
+            "0,0,inf,5",
+            "0,0,1,21",
+            "0,0,1,-1",
+            "0,0,1,1.5",
+        ] {
+            let e = bad.parse::<DetailRegion>().expect_err(bad);
+            assert!(
+                e.contains(&format!("'{bad}'")) && e.contains("LAT,LON,RADIUS_KM,LEVEL"),
+                "{e}"
+            );
+        }
+        let mut o = default_procedural_options();
+        o.levels = 6;
+        o.detail = vec![r, "0,0,1,5".parse().expect("valid")];
+        let e = check_procedural_options(&o).expect_err("shallow region");
+        assert!(e.to_string().contains("shallower than --levels 6"), "{e}");
+        o.detail.pop();
+        assert!(check_procedural_options(&o).is_ok());
     }
 
     #[test]

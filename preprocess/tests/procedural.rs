@@ -1,11 +1,14 @@
 //! Procedural planet: build, verify, corruption detection, exact samples.
 
 use planet_core::format::DbFile;
+use planet_core::{BlockId, Edge};
 use planet_preprocess::db::{verify, Sampler};
+use planet_preprocess::plan::Plan;
 use planet_preprocess::{
     build_procedural, default_procedural_options, Procedural, ProceduralOptions,
 };
 use rand::{Rng, SeedableRng};
+use std::collections::HashMap;
 use std::fs::OpenOptions;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
@@ -127,4 +130,101 @@ fn deterministic_and_sphere_datum() {
     for r in db.header.elevation.root_records {
         assert!(r.min_elevation <= r.max_elevation && r.error >= 0.0);
     }
+}
+
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+/// A uniform planet is byte-identical to the one the generator built before
+/// detail regions existed (FNV-1a of the file the previous release wrote for
+/// seed 1, 2 levels, one thread).
+#[test]
+fn uniform_planet_is_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("u.db");
+    let mut o = default_procedural_options();
+    o.levels = 2;
+    o.threads = Some(1);
+    build_procedural(&o, &path).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    assert_eq!(bytes.len(), 2_594_635);
+    assert_eq!(fnv1a(&bytes), 0x6dda_e49e_f422_ba2a);
+}
+
+/// The samples along the edge `e` of a full `(W+1)²` grid, in edge order.
+fn edge_of(grid: &[i16], w: usize, e: Edge) -> Vec<i16> {
+    (0..=w)
+        .map(|k| {
+            let (i, j) = match e {
+                Edge::Left => (0, k),
+                Edge::Right => (w, k),
+                Edge::Bottom => (k, 0),
+                Edge::Top => (k, w),
+            };
+            grid[j * (w + 1) + i]
+        })
+        .collect()
+}
+
+/// A planet with a detail region: the database holds the generator's
+/// grids, verifies, and every pair of same-level neighbours (across faces
+/// too) shares bit-identical edge samples, in particular where a leaf meets
+/// a split block of its level whose samples come from deeper leaves.
+#[test]
+fn detail_region_edges_are_bit_identical() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("d.db");
+    let mut opts = small(4, true);
+    // On the edge between faces 0 and 2 (45° N, 0° E), 300 km, to level 8:
+    // deep enough for a rough octave (wavelength ~1.6 km), wide enough for
+    // base lattice points (every ~78 km) inside it.
+    opts.detail = vec!["45,0,300,8".parse().unwrap()];
+    let stats = build_procedural(&opts, &path).unwrap();
+    let gen = Procedural::new(&opts);
+    let Plan::Explicit { split, .. } = gen.plan() else {
+        panic!("explicit plan expected");
+    };
+    assert_eq!(stats.max_level, 8);
+    assert_eq!(stats.colour_max_level, 4);
+    assert_eq!(stats.colour_records, 6 * 341);
+    assert_eq!(stats.elevation_records, 6 + 4 * split.len() as u64);
+    let rep = verify(&path).unwrap();
+    assert_eq!(rep.max_level, 8);
+    let s = Sampler::open(&path).unwrap();
+    let mut grids: HashMap<BlockId, Vec<i16>> = HashMap::new();
+    s.for_each_elevation_block(|b, grid| {
+        grids.insert(b, grid.to_vec());
+    })
+    .unwrap();
+    assert_eq!(grids.len() as u64, stats.elevation_records);
+    // The database holds exactly the generator's grids (from level 4 down:
+    // the shallower ones regenerate whole faces).
+    for (b, g) in grids.iter().filter(|(b, _)| b.level >= 4) {
+        assert_eq!(g, &gen.elevation_grid(*b), "{b:?}");
+    }
+    let w = 64;
+    let (mut pairs, mut leaf_split, mut cross_face) = (0, 0, 0);
+    for (b, g) in &grids {
+        for e in Edge::ALL {
+            let (n, back) = b.neighbour(e);
+            let Some(ng) = grids.get(&n) else { continue };
+            assert_eq!(edge_of(g, w, e), edge_of(ng, w, back), "{b:?} {e:?} {n:?}");
+            pairs += 1;
+            if split.contains(b) != split.contains(&n) && b.level >= 4 {
+                leaf_split += 1;
+            }
+            if n.face != b.face && b.level >= 5 {
+                cross_face += 1;
+            }
+        }
+    }
+    assert!(pairs > 1000, "{pairs} pairs");
+    assert!(leaf_split >= 8, "{leaf_split} leaf/split boundaries");
+    assert!(cross_face >= 4, "{cross_face} deep cross-face pairs");
+    // A point in the region descends to a level-8 leaf, one outside to 4.
+    assert_eq!(s.sample(45.0, 0.1).unwrap().leaf.level, 8);
+    assert_eq!(s.sample(-30.0, 100.0).unwrap().leaf.level, 4);
 }

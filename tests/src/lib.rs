@@ -203,10 +203,23 @@ impl Drop for LocalServer {
 
 /// Builds a procedural database (`levels` uniform levels, with colour).
 pub fn build_procedural_db(out: &Path, levels: u8, seed: u64) -> Result<(), HarnessError> {
+    build_procedural_db_with_detail(out, levels, seed, &[])
+}
+
+/// Builds a procedural database with colour: `levels` uniform levels,
+/// deepened in the detail regions (the deep benchmark planets; an empty
+/// slice gives [`build_procedural_db`]'s uniform planet).
+pub fn build_procedural_db_with_detail(
+    out: &Path,
+    levels: u8,
+    seed: u64,
+    detail: &[planet_preprocess::DetailRegion],
+) -> Result<(), HarnessError> {
     let mut opts = planet_preprocess::default_procedural_options();
     opts.levels = levels;
     opts.seed = seed;
     opts.quiet = true;
+    opts.detail = detail.to_vec();
     planet_preprocess::build_procedural(&opts, out)
         .map(|_| ())
         .map_err(|e| HarnessError::Build(e.to_string()))
