@@ -44,7 +44,7 @@ pub struct FlightArgs {
     /// (`LAT,LON,RADIUS_KM,LEVEL`, repeatable; see `planet-build build
     /// --detail`).
     #[arg(long = "detail")]
-    pub detail: Vec<String>,
+    pub detail: Vec<planet_preprocess::DetailRegion>,
     /// Built-in trajectory name (rainier, everest, orbit, static-low,
     /// low-pass) or file.
     #[arg(long, default_value = "rainier")]
@@ -234,11 +234,11 @@ pub fn run(a: FlightArgs) -> Result<()> {
             if a.detail.is_empty() {
                 String::new()
             } else {
-                format!(", detail {}", a.detail.join(" "))
+                format!(", {} detail regions", a.detail.len())
             },
             a.db.display()
         );
-        planet_tests::build_procedural_db_detail(&a.db, a.levels, 1, &a.detail)?;
+        planet_tests::build_procedural_db_with_detail(&a.db, a.levels, 1, &a.detail)?;
     }
     let traj = match Trajectory::builtin(&a.trajectory) {
         Some(t) => t,

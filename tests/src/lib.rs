@@ -225,22 +225,6 @@ pub fn build_procedural_db_with_detail(
         .map_err(|e| HarnessError::Build(e.to_string()))
 }
 
-/// [`build_procedural_db`] with detail regions (`LAT,LON,RADIUS_KM,LEVEL`,
-/// as `planet-build build --detail` takes them).
-pub fn build_procedural_db_detail(
-    out: &Path,
-    levels: u8,
-    seed: u64,
-    detail: &[String],
-) -> Result<(), HarnessError> {
-    if !detail.is_empty() {
-        return Err(HarnessError::Build(
-            "detail regions are not supported yet".into(),
-        ));
-    }
-    build_procedural_db(out, levels, seed)
-}
-
 /// A multi-threaded tokio runtime for servers, links and sessions.
 pub fn runtime(threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
