@@ -121,6 +121,7 @@ pub struct Row {
     pub qf: f64,
     pub sse_max: f64,
     pub sse_mean: f64,
+    pub sse_pixel_mean: f64,
     pub err_max: f64,
     pub err_mean: f64,
     pub probes: usize,
@@ -138,6 +139,8 @@ pub struct Summary {
     /// ∫ mean SSE dt and ∫ max SSE dt over the flight (px·s).
     pub error_integral: f64,
     pub max_sse_integral: f64,
+    /// ∫ per-pixel (area-weighted) mean SSE dt.
+    pub pixel_error_integral: f64,
     /// Per stop (static segment): its start and the time to max SSE ≤ the
     /// tolerance from it (`None`: not reached during the stop).
     pub stops: Vec<(f64, Option<f64>)>,
@@ -203,6 +206,7 @@ struct JsonSummary<'a> {
     max_sse_px: f64,
     error_integral_px_s: f64,
     max_sse_integral_px_s: f64,
+    pixel_error_integral_px_s: f64,
     stops_s: Vec<f64>,
     time_to_1px_after_stops_s: Vec<Option<f64>>,
     bytes: u64,
@@ -285,6 +289,7 @@ pub fn run(a: FlightArgs) -> Result<()> {
             max_sse_px: a.max_sse,
             error_integral_px_s: s.error_integral,
             max_sse_integral_px_s: s.max_sse_integral,
+            pixel_error_integral_px_s: s.pixel_error_integral,
             stops_s: s.stops.iter().map(|x| x.0).collect(),
             time_to_1px_after_stops_s: s.stops.iter().map(|x| x.1).collect(),
             bytes: s.bytes,
@@ -487,6 +492,7 @@ fn run_link(
             qf: st.quality_factor,
             sse_max: st.max_screen_error,
             sse_mean: st.mean_screen_error,
+            sse_pixel_mean: st.pixel_mean_screen_error,
             err_max: emax,
             err_mean: if np > 0 { esum / np as f64 } else { f64::NAN },
             probes: np,
@@ -542,6 +548,7 @@ fn run_link(
     let dt = 1.0 / a.fps;
     let error_integral: f64 = rows.iter().map(|r| r.sse_mean * dt).sum();
     let max_sse_integral: f64 = rows.iter().map(|r| r.sse_max * dt).sum();
+    let pixel_error_integral: f64 = rows.iter().map(|r| r.sse_pixel_mean * dt).sum();
     let needed_over_delivered = match (needed, bandwidth) {
         (Some(n), Some(bps)) if duration > 0.0 => Some(n as f64 / (bps as f64 / 8.0 * duration)),
         _ => None,
@@ -556,6 +563,7 @@ fn run_link(
             policy,
             error_integral,
             max_sse_integral,
+            pixel_error_integral,
             stops,
             wasted_pct: 100.0 * totals.wasted_ratio(),
             needed_over_delivered,
@@ -601,12 +609,12 @@ async fn warm_up(session: &SessionConfig) -> Result<()> {
 
 fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
     let mut s = String::from(
-        "frame,t_s,bytes_total,bytes_frame,in_flight,sent,cancelled,cancelled_total,blocks,triangles,quality_factor,sse_max_px,sse_mean_px,true_err_max_m,true_err_mean_m,probes,relevant_ratio,cpu_ms,nodes,connected\n",
+        "frame,t_s,bytes_total,bytes_frame,in_flight,sent,cancelled,cancelled_total,blocks,triangles,quality_factor,sse_max_px,sse_mean_px,sse_pixel_mean_px,true_err_max_m,true_err_mean_m,probes,relevant_ratio,cpu_ms,nodes,connected\n",
     );
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{:.4},{},{},{},{},{},{},{},{},{:.1},{:.4},{:.4},{:.3},{:.3},{},{:.5},{:.4},{},{}",
+            "{},{:.4},{},{},{},{},{},{},{},{},{:.1},{:.4},{:.4},{:.4},{:.3},{:.3},{},{:.5},{:.4},{},{}",
             r.frame,
             r.t,
             r.bytes_total,
@@ -620,6 +628,7 @@ fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
             r.qf,
             r.sse_max,
             r.sse_mean,
+            r.sse_pixel_mean,
             r.err_max,
             r.err_mean,
             r.probes,
@@ -637,11 +646,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| link | policy | ∫ mean SSE dt | ∫ max SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| link | policy | ∫ mean SSE dt | ∫ max SSE dt | ∫ per-pixel SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
         let stops: Vec<String> = s
@@ -654,12 +663,13 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {}{} | {} | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {}{} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
             s.policy,
             s.error_integral,
             s.max_sse_integral,
+            s.pixel_error_integral,
             stops.join(", "),
             s.bytes as f64 / 1e6,
             s.link_bytes_down as f64 / 1e6,

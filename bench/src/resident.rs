@@ -15,7 +15,7 @@ use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::request_queue::QueueConfig;
 use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
 use planet_client::trajectory::{camera_from_keyframe, Keyframe};
-use planet_client::{Client, ClientConfig};
+use planet_client::{Client, ClientConfig, Policy};
 use std::time::Instant;
 
 #[derive(Args, Debug, Clone)]
@@ -29,7 +29,16 @@ pub struct ResidentArgs {
     /// Deepest level of the synthetic database.
     #[arg(long, default_value_t = 6)]
     pub levels: u8,
-    /// Fixed quality factor (high: many blocks).
+    /// Client policy (the selection and scheduling timed).
+    #[arg(long, default_value = "ours")]
+    pub policy: Policy,
+    /// Pixel tolerance: the workload's size. The synthetic database is
+    /// smooth (a few sines), so reaching 10 000 resident blocks over it
+    /// takes a tolerance far below a pixel; the work per frame depends on
+    /// the number of blocks, not on why they are resident.
+    #[arg(long, default_value_t = 0.005)]
+    pub max_sse: f64,
+    /// Quality factor of the thesis policy (high: many blocks).
     #[arg(long, default_value_t = 1e7)]
     pub qf: f64,
     /// Frames timed per camera.
@@ -65,10 +74,11 @@ pub fn run(a: ResidentArgs) -> Result<()> {
         db.file.len() as f64 / 1e6,
         t0.elapsed().as_secs_f64()
     );
+    let base = ClientConfig::for_policy(a.policy, a.max_sse);
     let cfg = ClientConfig {
         queue: QueueConfig {
             max_in_flight: 64,
-            ..QueueConfig::default()
+            ..base.queue
         },
         tree_ops_per_frame: 256,
         decode_threads: 0,
@@ -77,7 +87,7 @@ pub fn run(a: ResidentArgs) -> Result<()> {
             initial: a.qf,
             ..QualityConfig::default()
         },
-        ..ClientConfig::default()
+        ..base
     };
     let mut client = Client::new(db.header.clone(), cfg)?;
     let mut server = FakeServer::new(1);

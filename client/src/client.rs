@@ -25,7 +25,7 @@
 
 use crate::link_estimate::LinkEstimator;
 use crate::quality::{QualityConfig, QualityController, QualityMode};
-use crate::refinement::{sanitize_tolerance, Kind, Policy, Refiner, DEFAULT_MAX_SSE_PX};
+use crate::refinement::{sanitize_tolerance, Footprint, Kind, Policy, Refiner, DEFAULT_MAX_SSE_PX};
 use crate::request_queue::{select_tree_ops, OpKind, QueueConfig, RequestQueue, TreeOp};
 use crate::selection::{DrawBlock, Selector};
 use crate::stats::{FrameStats, Totals};
@@ -555,7 +555,8 @@ impl Client {
                     Tree::Elevation => (Kind::Elevation, ew),
                     Tree::Colour => (Kind::Colour, cw),
                 };
-                let m = later.measure(kind, b.centre, b.radius, w, n.record.error as f64, 0.0);
+                let fp = Footprint::of(b);
+                let m = later.measure(kind, &fp, w, n.record.error as f64, 0.0);
                 later.leaf(&m, n.lod).load
             })
             .collect();
@@ -623,6 +624,14 @@ impl Client {
             stats.max_screen_error = draw.iter().map(|d| d.screen_error).fold(0.0, f64::max);
             stats.mean_screen_error =
                 draw.iter().map(|d| d.screen_error).sum::<f64>() / draw.len() as f64;
+            let area: f64 = draw.iter().map(|d| d.screen_area).sum();
+            if area > 0.0 {
+                stats.pixel_mean_screen_error = draw
+                    .iter()
+                    .map(|d| d.screen_error * d.screen_area)
+                    .sum::<f64>()
+                    / area;
+            }
         }
         stats.nodes = self.tree.node_count();
         stats.near = view.near;

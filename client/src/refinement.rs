@@ -16,7 +16,7 @@
 //! errors:
 //!
 //! ```text
-//! ρ(ε, d) = ε·H / (2·d·tan(fov_y/2))       d = max(|eye − centre| − radius, near)
+//! ρ(ε, d) = ε·H / (2·d·tan(fov_y/2))       d = max(distance to the block, near)
 //! s1 = ρ(error of the block at LOD 1)       (its own record's error)
 //! s0 = ρ(error of the block at LOD 0)       (largest error of its children's records)
 //! leaf with LOD 1:   load LOD 0  when s1 > tol              (priority s1)
@@ -24,6 +24,13 @@
 //!                    keep drawing LOD 0 while s1 > tol/2    (hysteresis)
 //! split block:       merge       when s1 ≤ tol/4            (two halvings of hysteresis)
 //! ```
+//!
+//! The distance to the block is a lower bound of the distance from the eye
+//! to any point of its surface ([`Footprint::distance`]): the largest of
+//! the distance to its bounding ball, the eye's height above the highest
+//! point of its bounds, and the distance to the cone of directions that the
+//! block covers, so a block seen from above or from the side is not taken
+//! for one that surrounds the eye.
 //!
 //! A block whose error is below the tolerance is never refined, whatever
 //! its size or distance; one above always is. Colour refines by projected
@@ -60,7 +67,7 @@ use crate::importance::{
     refine_importance, selected_lod, split_importance, wants_merge, wants_split, Importance,
     ScreenError,
 };
-use crate::visibility::View;
+use crate::visibility::{BlockBounds, View};
 use glam::DVec3;
 use std::fmt;
 use std::str::FromStr;
@@ -129,6 +136,107 @@ impl FromStr for Policy {
     }
 }
 
+/// Where a block is, for its distance from the eye: the centre and
+/// footprint radius of thesis §4.2.4 (the thesis's distance) and the cone of
+/// directions and the largest radius its bounds cover (the tighter distance
+/// of the screen-space error).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Footprint {
+    /// Centre of the bounding box.
+    pub centre: DVec3,
+    /// Footprint radius (thesis `blockRadius`).
+    pub radius: f64,
+    /// Radius of the ball about `centre` holding every bounding point.
+    pub sphere_radius: f64,
+    /// Axis of the cone of directions of the bounding points (unit).
+    pub axis: DVec3,
+    /// Half-angle of that cone in radians (π: no cone).
+    pub half_angle: f64,
+    /// Largest distance of a bounding point from the planet's centre.
+    pub r_top: f64,
+}
+
+impl Footprint {
+    /// The footprint of `b` (its bounding points' hull contains the
+    /// block's surface, so every surface direction lies in the cone of the
+    /// points' directions when that cone is narrower than a hemisphere, and
+    /// no surface point is farther from the centre than the farthest point).
+    pub fn of(b: &BlockBounds) -> Footprint {
+        let axis = if b.centre.length_squared() > 0.0 && b.centre.is_finite() {
+            b.centre.normalize()
+        } else {
+            DVec3::Z
+        };
+        let mut cos_min: f64 = 1.0;
+        let mut r_top: f64 = 0.0;
+        for p in &b.points {
+            let l = p.length();
+            r_top = r_top.max(l);
+            if l > 0.0 {
+                cos_min = cos_min.min(axis.dot(*p) / l);
+            } else {
+                cos_min = -1.0;
+            }
+        }
+        // Half-angles from 90° on give no bound (the cone is not convex).
+        let half_angle = if cos_min > 1e-3 {
+            cos_min.clamp(-1.0, 1.0).acos() * (1.0 + 1e-9) + 1e-12
+        } else {
+            std::f64::consts::PI
+        };
+        Footprint {
+            centre: b.centre,
+            radius: b.radius,
+            sphere_radius: b.sphere_radius,
+            axis,
+            half_angle,
+            r_top: if r_top.is_finite() { r_top } else { f64::MAX },
+        }
+    }
+
+    /// A lower bound of the distance from `eye` to the block's surface
+    /// (may be negative or zero when the eye may be inside its bounds):
+    /// the largest of
+    ///
+    /// - `|eye − centre| − sphere_radius` (the bounding ball),
+    /// - `|eye| − r_top` (the eye above the highest bounding point),
+    /// - the distance from `eye` to the set of points at angle at least
+    ///   `θ − half_angle` from its direction and at most `r_top` from the
+    ///   centre, where `θ` is the angle between the eye and the axis: the
+    ///   block seen from the side.
+    pub fn distance(&self, eye: DVec3) -> f64 {
+        let ball = (eye - self.centre).length() - self.sphere_radius;
+        let e = eye.length();
+        let above = e - self.r_top;
+        let mut side = f64::NEG_INFINITY;
+        if self.half_angle < std::f64::consts::FRAC_PI_2 && e > 0.0 {
+            let cos_t = (self.axis.dot(eye) / e).clamp(-1.0, 1.0);
+            let phi = cos_t.acos() - self.half_angle;
+            if phi > 0.0 {
+                // Nearest point at angle phi from the eye's direction and
+                // at most r_top from the centre: at radius e·cos(phi)
+                // (clamped to [0, r_top]), written without cancellation.
+                let (s, c) = phi.sin_cos();
+                side = if c <= 0.0 {
+                    e
+                } else if e * c <= self.r_top {
+                    e * s
+                } else {
+                    let r = self.r_top;
+                    let h = (0.5 * phi).sin();
+                    ((e - r) * (e - r) + 4.0 * e * r * h * h).sqrt()
+                };
+            }
+        }
+        let d = ball.max(above).max(side);
+        if d.is_nan() {
+            f64::NEG_INFINITY
+        } else {
+            d
+        }
+    }
+}
+
 /// What a node's decisions depend on besides the policy and tolerance,
 /// computed once per node while the eye stays put (memoisable: it does not
 /// depend on the view direction).
@@ -177,6 +285,8 @@ pub struct Refiner {
     imp: Importance,
     sse: ScreenError,
     near: f64,
+    height: f64,
+    max_area: f64,
     eye: DVec3,
     forward: DVec3,
 }
@@ -202,6 +312,20 @@ impl Refiner {
                 view.near.max(0.0)
             } else {
                 0.0
+            },
+            height: if view.camera.viewport_height_px > 0.0 {
+                view.camera.viewport_height_px
+            } else {
+                f64::INFINITY
+            },
+            max_area: {
+                let c = &view.camera;
+                let a = c.viewport_height_px * c.viewport_height_px * c.aspect;
+                if a > 0.0 && a.is_finite() {
+                    a
+                } else {
+                    f64::INFINITY
+                }
             },
             eye: view.camera.eye,
             forward,
@@ -231,28 +355,20 @@ impl Refiner {
 
     /// The node's memoisable measure. `width` is the tree's block width,
     /// `err1` / `err0` the block's errors at LOD 1 and LOD 0.
-    pub fn measure(
-        &self,
-        kind: Kind,
-        centre: DVec3,
-        radius: f64,
-        width: f64,
-        err1: f64,
-        err0: f64,
-    ) -> Measure {
-        let dist = (self.eye - centre).length() - radius;
+    pub fn measure(&self, kind: Kind, fp: &Footprint, width: f64, err1: f64, err0: f64) -> Measure {
+        let radius = fp.radius;
         match self.policy {
-            Policy::Thesis => Measure {
-                a: self.imp.of(dist, radius, width),
-                b: 0.0,
-                dist,
-            },
+            Policy::Thesis => {
+                let dist = (self.eye - fp.centre).length() - radius;
+                Measure {
+                    a: self.imp.of(dist, radius, width),
+                    b: 0.0,
+                    dist,
+                }
+            }
             _ => {
-                let d = if dist.is_nan() {
-                    0.0
-                } else {
-                    dist.max(self.near)
-                };
+                let dist = fp.distance(self.eye);
+                let d = dist.max(self.near);
                 let (s1, s0) = match kind {
                     Kind::Elevation => (self.sse.of(err1, d), self.sse.of(err0, d)),
                     Kind::Colour => {
@@ -342,7 +458,7 @@ impl Refiner {
     fn cesium(&self, m: &Measure, centre: DVec3) -> f64 {
         let to = centre - self.eye;
         let len = to.length();
-        if !(len > 1e-5) || !len.is_finite() {
+        if len.is_nan() || len <= 1e-5 || !len.is_finite() {
             return 0.0;
         }
         let cos = (to / len).dot(self.forward);
@@ -354,15 +470,24 @@ impl Refiner {
         }
     }
 
+    /// Approximate screen area in pixels of a block of footprint radius
+    /// `radius` at distance `dist`: `(√2·radius·H / (2·d·tan(fov/2)))²`, at
+    /// most the viewport's area.
+    pub fn screen_area(&self, radius: f64, dist: f64) -> f64 {
+        let side = self
+            .sse
+            .of(radius * std::f64::consts::SQRT_2, dist.max(self.near));
+        (side * side).min(self.max_area)
+    }
+
     /// The screen-space error in pixels of `error` metres at the measure's
-    /// distance (the figure reported for drawn blocks).
+    /// distance, capped at the viewport height: the figure reported for
+    /// drawn blocks (an error larger than the screen is the whole screen
+    /// wrong; uncapped, the first frames of a cold start near the ground,
+    /// with the eye inside the bounds of the roots, report millions of
+    /// pixels and would outweigh the rest of any flight in an integral).
     pub fn screen_error(&self, error: f64, dist: f64) -> f64 {
-        let d = if dist.is_nan() {
-            0.0
-        } else {
-            dist.max(self.near)
-        };
-        self.sse.of(error, d)
+        self.sse.of(error, dist.max(self.near)).min(self.height)
     }
 }
 
@@ -391,6 +516,18 @@ mod tests {
     use crate::visibility::Camera;
     use proptest::prelude::*;
 
+    /// A footprint with only its ball (no cone, no top).
+    fn ball(centre: DVec3, radius: f64) -> Footprint {
+        Footprint {
+            centre,
+            radius,
+            sphere_radius: radius,
+            axis: DVec3::Z,
+            half_angle: std::f64::consts::PI,
+            r_top: f64::MAX,
+        }
+    }
+
     fn view(eye: DVec3, fov_deg: f64) -> View {
         let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
         c.fov_y = fov_deg.to_radians();
@@ -411,12 +548,12 @@ mod tests {
         let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
         let c = DVec3::new(6.37e6, 0.0, 0.0);
         // Flat: no error at either LOD, a metre away.
-        let flat = r.measure(Kind::Elevation, c, 1000.0, 64.0, 0.0, 0.0);
+        let flat = r.measure(Kind::Elevation, &ball(c, 1000.0), 64.0, 0.0, 0.0);
         let d = r.leaf(&flat, 1);
         assert!(!d.load && d.lod == 1);
         assert!(!r.leaf(&flat, 0).split);
         // A cliff: 100 m of error 30 km away is ~3 px at 1080 px, 60°.
-        let cliff = r.measure(Kind::Elevation, c, 1000.0, 64.0, 100.0, 50.0);
+        let cliff = r.measure(Kind::Elevation, &ball(c, 1000.0), 64.0, 100.0, 50.0);
         assert!(r.leaf(&cliff, 1).load);
         assert!(r.leaf(&cliff, 0).split);
         assert!(r.merge(&cliff).is_none());
@@ -433,7 +570,7 @@ mod tests {
             let v = view(DVec3::new(x.abs().max(1.0), 1.0, 0.0), fov);
             let r = Refiner::new(Policy::Ours, &v, 1e4, tol);
             let c = DVec3::new(6.37e6, 0.0, 0.0);
-            let m = r.measure(Kind::Elevation, c, radius, 64.0, e1, e0);
+            let m = r.measure(Kind::Elevation, &ball(c, radius), 64.0, e1, e0);
             prop_assert!(m.a.is_finite() && m.b.is_finite() && m.a >= 0.0 && m.b >= 0.0);
             let d1 = r.leaf(&m, 1);
             prop_assert_eq!(d1.load, m.a > tol);
@@ -446,7 +583,7 @@ mod tests {
             }
             for p in Policy::ALL {
                 let r = Refiner::new(p, &v, 1e4, tol);
-                let m = r.measure(Kind::Elevation, c, radius, 64.0, e1, e0);
+                let m = r.measure(Kind::Elevation, &ball(c, radius), 64.0, e1, e0);
                 prop_assert!(r.load_priority(&m, 1, 10, c).is_finite());
                 prop_assert!(r.split_priority(&m, 10, c).is_finite());
             }
@@ -462,6 +599,90 @@ mod tests {
             prop_assert!(r.screen_error(e, near) >= r.screen_error(e, far));
             prop_assert!(r.screen_error(e + 1.0, near) >= r.screen_error(e, near));
         }
+    }
+
+    proptest! {
+        /// The footprint distance is a lower bound of the distance to the
+        /// block's surface (a dense grid of its points at random heights in
+        /// its range), and not looser than the bounding ball, for blocks at
+        /// every level, on cube edges and corners and at the poles, and eyes
+        /// from inside the planet to 1000 Earth radii.
+        #[test]
+        fn footprint_distance_is_a_lower_bound(
+            face in 0u8..6, level in 0u8..16, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
+            h0 in -11_000.0f64..9_000.0, dh in 0.0f64..9_000.0,
+            dir in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+            alt_log in -1.0f64..9.8, below in proptest::bool::ANY,
+            near_block in proptest::bool::ANY,
+        ) {
+            use planet_core::cube::FaceCoord;
+            use planet_core::{BlockId, Datum, Face};
+            let datum = Datum::WGS84;
+            let n = 1u32 << level;
+            let (x, y) = (((fx * n as f64) as u32).min(n - 1), ((fy * n as f64) as u32).min(n - 1));
+            let id = BlockId::new(Face::new(face).expect("face"), level, x, y).expect("id");
+            let b = BlockBounds::new(&datum, id, h0, h0 + dh);
+            let fp = Footprint::of(&b);
+            // The eye: near the block (above, beside or below it) or anywhere.
+            let d = if near_block {
+                let (s0, t0, s1, t1) = id.extent();
+                let fc = FaceCoord { face: id.face, s: s0 + (s1 - s0) * fx, t: t0 + (t1 - t0) * fy };
+                DVec3::from_array(fc.direction()) + DVec3::new(dir.0, dir.1, dir.2) * ((s1 - s0) * 2.0)
+            } else {
+                DVec3::new(dir.0, dir.1, dir.2)
+            };
+            let d = if d.length() < 1e-6 { DVec3::X } else { d.normalize() };
+            let r = datum.equatorial_radius();
+            let alt = 10f64.powf(alt_log);
+            let eye = d * if below { (r - alt).max(0.0) } else { r + alt };
+            let dist = fp.distance(eye);
+            prop_assert!(!dist.is_nan());
+            prop_assert!(dist >= (eye - b.centre).length() - b.sphere_radius - 1e-6);
+            let (s0, t0, s1, t1) = id.extent();
+            let k = 24;
+            let mut min = f64::INFINITY;
+            for j in 0..=k {
+                for i in 0..=k {
+                    let fc = FaceCoord {
+                        face: id.face,
+                        s: s0 + (s1 - s0) * i as f64 / k as f64,
+                        t: t0 + (t1 - t0) * j as f64 / k as f64,
+                    };
+                    let u = fc.direction();
+                    for h in [h0, h0 + dh * 0.5, h0 + dh] {
+                        let p = DVec3::from_array(datum.position(u, h));
+                        min = min.min((eye - p).length());
+                    }
+                }
+            }
+            // A millimetre of slack per 10 000 km for rounding.
+            prop_assert!(dist <= min + 1e-3 + min * 1e-10, "{} > {} at {:?}", dist, min, id);
+        }
+    }
+
+    #[test]
+    fn footprint_sees_blocks_from_above_and_aside() {
+        use planet_core::{BlockId, Datum, Face};
+        let datum = Datum::WGS84;
+        // A 10 km block, the eye 500 m above its top: the ball says "inside".
+        let id = BlockId::new(Face::new(0).expect("face"), 10, 300, 700).expect("id");
+        let b = BlockBounds::new(&datum, id, 0.0, 1000.0);
+        let fp = Footprint::of(&b);
+        let top = b.points.iter().map(|p| p.length()).fold(0.0, f64::max);
+        let eye = b.centre.normalize() * (top + 500.0);
+        assert!((eye - b.centre).length() - b.sphere_radius < 0.0);
+        let d = fp.distance(eye);
+        assert!((d - 500.0).abs() < 1.0, "{d}");
+        // 50 km aside at ground level: tens of kilometres, not zero.
+        let (s0, t0, s1, t1) = id.extent();
+        let fc = planet_core::cube::FaceCoord {
+            face: id.face,
+            s: s1 + (s1 - s0) * 5.0,
+            t: (t0 + t1) * 0.5,
+        };
+        let eye = DVec3::from_array(datum.position(fc.direction(), 500.0));
+        let d = fp.distance(eye);
+        assert!(d > 30_000.0 && d < 50_000.0, "{d}");
     }
 
     #[test]
@@ -486,9 +707,9 @@ mod tests {
         let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
         let c = DVec3::new(6.37e6, 0.0, 0.0);
         // 100 km block, 128 texels, 30 km away: texels of ~1.1 km, many px.
-        let m = r.measure(Kind::Colour, c, 7.07e4, 128.0, 5.0, 5.0);
+        let m = r.measure(Kind::Colour, &ball(c, 7.07e4), 128.0, 5.0, 5.0);
         assert!(r.leaf(&m, 1).load);
-        let uniform = r.measure(Kind::Colour, c, 7.07e4, 128.0, 0.0, 0.0);
+        let uniform = r.measure(Kind::Colour, &ball(c, 7.07e4), 128.0, 0.0, 0.0);
         assert!(!r.leaf(&uniform, 1).load);
     }
 
@@ -498,8 +719,8 @@ mod tests {
         let r = Refiner::new(Policy::Cesium, &v, 1e4, 2.0);
         let ahead = DVec3::new(6.4e6, 0.0, 0.0);
         let aside = DVec3::new(6.4e6, 3e5, 0.0);
-        let ma = r.measure(Kind::Elevation, ahead, 1e3, 64.0, 10.0, 5.0);
-        let ms = r.measure(Kind::Elevation, aside, 1e3, 64.0, 10.0, 5.0);
+        let ma = r.measure(Kind::Elevation, &ball(ahead, 1e3), 64.0, 10.0, 5.0);
+        let ms = r.measure(Kind::Elevation, &ball(aside, 1e3), 64.0, 10.0, 5.0);
         assert!(r.load_priority(&ma, 1, 5, ahead) > r.load_priority(&ms, 1, 5, aside));
         let b = Refiner::new(Policy::Breadth, &v, 1e4, 2.0);
         assert!(b.load_priority(&ma, 1, 9, ahead) < b.load_priority(&ms, 1, 5, aside));

@@ -24,7 +24,7 @@
 //! (erratum of §4.3.1, thesis-notes §7.4): the block adapts on that edge
 //! when it is positive; split (finer) or invisible neighbours give `None`.
 
-use crate::refinement::{Kind, Measure, Refiner};
+use crate::refinement::{Footprint, Kind, Measure, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{
     Blocked, ChangeKind, FastMap, LinkedTree, Node, PartialTree, TreeChange, TreeChanges, TreeStamp,
@@ -70,8 +70,13 @@ pub struct DrawBlock {
     pub colour: Option<ColourBinding>,
     /// The block's importance.
     pub importance: f64,
-    /// Screen-space error in pixels at the drawn LOD.
+    /// Screen-space error in pixels at the drawn LOD (capped at the
+    /// viewport height).
     pub screen_error: f64,
+    /// Approximate screen area of the block in pixels (its footprint's
+    /// side projected at its distance, squared, at most the viewport): the
+    /// weight of its error in the per-pixel mean.
+    pub screen_area: f64,
 }
 
 /// The result of one traversal.
@@ -114,7 +119,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             let Some(b) = n.bounds.as_ref() else { continue };
             let visible = parent_visible && view.is_visible(b);
             let (err1, err0) = (n.record.error as f64, child_error(n));
-            let m = refiner.measure(Kind::Elevation, b.centre, b.radius, ew, err1, err0);
+            let m = refiner.measure(Kind::Elevation, &Footprint::of(b), ew, err1, err0);
             if n.split {
                 info.insert(
                     id,
@@ -159,7 +164,8 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             }
             let error = if lod == 1 { err1 } else { err0 };
             let sse = refiner.screen_error(error, m.dist);
-            cx.draw(id, lod, et.width, d.importance, sse);
+            let area = refiner.screen_area(b.radius, m.dist);
+            cx.draw(id, lod, et.width, d.importance, (sse, area));
         }
     }
     // Colour tree.
@@ -175,7 +181,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 };
                 let visible = info.get(&id).is_some_and(|i| i.visible);
                 let (err1, err0) = (n.record.error as f64, child_error(n));
-                let m = refiner.measure(Kind::Colour, b.centre, b.radius, cw, err1, err0);
+                let m = refiner.measure(Kind::Colour, &Footprint::of(b), cw, err1, err0);
                 if n.split {
                     if let Some(p) = refiner.merge(&m) {
                         if tree.can_merge(Tree::Colour, &id).is_ok() {
@@ -264,7 +270,7 @@ impl Ctx<'_> {
     /// Adds an elevation block to the draw list at `lod` (neighbours and
     /// colour are filled in later) and counts its triangles: `2·w²`, with
     /// `w` the block width for `lod` 0 and half of it for `lod` 1.
-    fn draw(&mut self, block: BlockId, lod: u8, width: usize, importance: f64, screen_error: f64) {
+    fn draw(&mut self, block: BlockId, lod: u8, width: usize, importance: f64, sse: (f64, f64)) {
         let w = if lod == 0 { width } else { width / 2 } as u64;
         self.out.triangles += 2 * w * w;
         self.out.draw.push(DrawBlock {
@@ -273,7 +279,8 @@ impl Ctx<'_> {
             neighbours: [None; 4],
             colour: None,
             importance,
-            screen_error,
+            screen_error: sse.0,
+            screen_area: sse.1,
         });
     }
 
@@ -368,6 +375,8 @@ struct Cold {
     /// Geometric error at LOD 1 (own record) and LOD 0 (children's records).
     err1: f64,
     err0: f64,
+    /// Where the block is, for its distance ([`Refiner::measure`]).
+    fp: Footprint,
     record: ChildRef,
     /// Deepest colour node covering this block (leaves).
     colour: Binding,
@@ -709,6 +718,7 @@ impl Selector {
                 parts: !b.parts.is_empty(),
                 err1: n.record.error as f64,
                 err0: child_error(n),
+                fp: Footprint::of(b),
                 record: n.record,
                 colour: Binding::None,
             };
@@ -1218,7 +1228,7 @@ impl Selector {
                 if m.gen != gen {
                     let c = &self.cold[h.slot as usize];
                     m.gen = gen;
-                    m.m = refiner.measure(Kind::Elevation, h.centre, h.radius, ew, c.err1, c.err0);
+                    m.m = refiner.measure(Kind::Elevation, &c.fp, ew, c.err1, c.err0);
                     m.sse_lod = NOT_DRAWN;
                 }
                 if let Some(p) = refiner.merge(&m.m) {
@@ -1241,7 +1251,7 @@ impl Selector {
             if m.gen != gen {
                 let c = &self.cold[h.slot as usize];
                 m.gen = gen;
-                m.m = refiner.measure(Kind::Elevation, h.centre, h.radius, ew, c.err1, c.err0);
+                m.m = refiner.measure(Kind::Elevation, &c.fp, ew, c.err1, c.err0);
                 m.sse_lod = NOT_DRAWN;
             }
             let mm = m.m;
@@ -1268,7 +1278,8 @@ impl Selector {
                 m.sse = refiner.screen_error(error, mm.dist);
                 m.sse_lod = lod;
             }
-            cx.draw(id, lod, et.width, d.importance, m.sse);
+            let area = refiner.screen_area(h.radius, mm.dist);
+            cx.draw(id, lod, et.width, d.importance, (m.sse, area));
             self.draw_idx.push(i as u32);
         }
         // Colour tree.
@@ -1290,7 +1301,13 @@ impl Selector {
                     let err1 = c.record.error as f64;
                     *m = (
                         gen,
-                        refiner.measure(Kind::Colour, h.centre, h.radius, cw, err1, c.err0),
+                        refiner.measure(
+                            Kind::Colour,
+                            &self.cold[h.slot as usize].fp,
+                            cw,
+                            err1,
+                            c.err0,
+                        ),
                     );
                 }
                 let mm = m.1;

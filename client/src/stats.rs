@@ -42,6 +42,9 @@ pub struct FrameStats {
     pub max_screen_error: f64,
     /// Mean screen-space error (pixels) over drawn blocks.
     pub mean_screen_error: f64,
+    /// Mean screen-space error (pixels) over the screen: drawn blocks
+    /// weighted by their approximate screen area.
+    pub pixel_mean_screen_error: f64,
     /// Nodes in both trees after this frame's operations.
     pub nodes: usize,
     /// Near plane distance used.

@@ -84,70 +84,30 @@ pub enum TrajectoryError {
 }
 
 /// Names accepted by [`Trajectory::builtin`].
-pub const BUILTIN_NAMES: [&str; 4] = ["rainier", "everest", "orbit", "static-low"];
+pub const BUILTIN_NAMES: [&str; 6] = [
+    "rainier",
+    "everest",
+    "orbit",
+    "static-low",
+    "low-pass",
+    "glide-rainier",
+];
 
 /// Mount Rainier summit (degrees).
 pub const RAINIER: (f64, f64) = (46.853, -121.760);
 /// Mount Everest summit (degrees).
 pub const EVEREST: (f64, f64) = (27.988, 86.925);
 
-const RAINIER_TEXT: &str = "\
-# rainier: the whole Earth from orbit, descent to Mount Rainier, hover,
-# fast flight forward, fast flight backward, hover.
-# t      lat      lon        alt       heading pitch
-0        46.853   -121.760   20000000  0       -90
-3        46.853   -121.760   20000000  0       -90
-# descent (altitude interpolated logarithmically)
-13       46.80    -121.760   200000    0       -80
-23       46.753   -121.760   6400      0       -15
-# hover: 2 km above the summit, 11 km south of it, looking at the mountain
-35       46.753   -121.760   6400      0       -15
-# fast flight forward (north, 0.15 deg = 16.7 km in 15 s: 1.1 km/s)
-50       46.903   -121.760   6400      0       -15
-51       46.903   -121.760   6400      0       -15
-# fast flight backward (south, still looking north)
-66       46.753   -121.760   6400      0       -15
-# hover again: convergence after the stop
-78       46.753   -121.760   6400      0       -15
-";
-
-const EVEREST_TEXT: &str = "\
-# everest: the whole Earth from orbit, descent to Mount Everest, hover,
-# fast flight forward, fast flight backward, hover.
-# t      lat      lon        alt       heading pitch
-0        27.988   86.925     20000000  0       -90
-3        27.988   86.925     20000000  0       -90
-13       27.93    86.925     200000    0       -80
-23       27.888   86.925     10800     0       -15
-35       27.888   86.925     10800     0       -15
-50       28.038   86.925     10800     0       -15
-51       28.038   86.925     10800     0       -15
-66       27.888   86.925     10800     0       -15
-78       27.888   86.925     10800     0       -15
-";
-
-const ORBIT_TEXT: &str = "\
-# orbit: the whole Earth from 20 000 km, static.
-# t      lat      lon        alt       heading pitch
-0        46.853   -121.760   20000000  0       -90
-60       46.853   -121.760   20000000  0       -90
-";
-
-const STATIC_LOW_TEXT: &str = "\
-# static-low: 2 km above the summit of Mount Rainier, 11 km south of it,
-# looking at the mountain, static.
-# t      lat      lon        alt       heading pitch
-0        46.753   -121.760   6400      0       -15
-60       46.753   -121.760   6400      0       -15
-";
-
-/// The text of a built-in trajectory (the same as `bench/trajectories/NAME.txt`).
+/// The text of a built-in trajectory: `bench/trajectories/NAME.txt`,
+/// compiled in.
 pub fn builtin_text(name: &str) -> Option<&'static str> {
     match name {
-        "rainier" => Some(RAINIER_TEXT),
-        "everest" => Some(EVEREST_TEXT),
-        "orbit" => Some(ORBIT_TEXT),
-        "static-low" => Some(STATIC_LOW_TEXT),
+        "rainier" => Some(include_str!("../../bench/trajectories/rainier.txt")),
+        "everest" => Some(include_str!("../../bench/trajectories/everest.txt")),
+        "orbit" => Some(include_str!("../../bench/trajectories/orbit.txt")),
+        "static-low" => Some(include_str!("../../bench/trajectories/static-low.txt")),
+        "low-pass" => Some(include_str!("../../bench/trajectories/low-pass.txt")),
+        "glide-rainier" => Some(include_str!("../../bench/trajectories/glide-rainier.txt")),
         _ => None,
     }
 }
@@ -358,27 +318,6 @@ mod tests {
             assert!(t.duration() > 0.0);
         }
         assert!(Trajectory::builtin("nope").is_none());
-        // bench/trajectories/*.txt mirror the built-ins.
-        for (name, file) in [
-            (
-                "rainier",
-                include_str!("../../bench/trajectories/rainier.txt"),
-            ),
-            (
-                "everest",
-                include_str!("../../bench/trajectories/everest.txt"),
-            ),
-            ("orbit", include_str!("../../bench/trajectories/orbit.txt")),
-            (
-                "static-low",
-                include_str!("../../bench/trajectories/static-low.txt"),
-            ),
-        ] {
-            assert_eq!(
-                Trajectory::parse(file).unwrap(),
-                Trajectory::builtin(name).unwrap()
-            );
-        }
         // The rainier flight: orbit, a stop of at least 10 s, ≥ 300 m/s.
         let r = Trajectory::builtin("rainier").unwrap();
         assert!(r.keyframes[0].alt_m >= 1.9e7);

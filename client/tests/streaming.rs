@@ -7,9 +7,10 @@ use common::*;
 use glam::DVec3;
 use planet_client::importance::{block_distance, importance, selected_lod, wants_split};
 use planet_client::quality::{QualityConfig, QualityMode};
+use planet_client::refinement::{Footprint, Kind};
 use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
 use planet_client::tree::Samples;
-use planet_client::visibility::segment_hits_ball;
+use planet_client::visibility::{segment_hits_ball, View};
 use planet_client::{Camera, Client, ClientConfig, FrameOutput, Policy, TransportError};
 use planet_core::cube::FaceCoord;
 use planet_core::format::Tree;
@@ -519,4 +520,89 @@ fn predicted_view_requests_waste_less_while_descending() {
         sse_with <= sse_without * 1.01 + 1e-9,
         "{sse_with} {sse_without}"
     );
+}
+
+/// The default policy refines exactly where the screen-space error is above
+/// the tolerance (client/src/refinement.rs): every request it sends (not
+/// forced by a neighbour's split, §4.3.3) is for a block whose first LOD is
+/// off by more than the tolerance, and once converged every drawn block is
+/// within it or is the finest there is, at several tolerances and
+/// altitudes.
+#[test]
+fn sse_refines_exactly_above_the_tolerance() {
+    for (tol, alt) in [(0.1, 150_000.0), (1.0, 3_000.0), (4.0, 500.0)] {
+        let mut c = sse_client(tol, 0);
+        let mut s = FakeServer::new(2);
+        let eye = surface(DVec3::new(1.0, 0.1, 0.2), alt);
+        let cam = Camera::look_at(
+            eye,
+            surface(DVec3::new(1.0, 0.13, 0.21), 0.0),
+            eye.normalize(),
+        );
+        let (r_min, r_max) = c.radii();
+        let view = View::new(&cam, r_min, r_max);
+        let mut sent = 0;
+        let mut quiet = 0;
+        let mut last = None;
+        for _ in 0..4000 {
+            let r = c.refiner(&view);
+            let out = c.frame(&cam, 1.0 / 60.0);
+            for o in out.send.iter().filter(|o| !o.forced) {
+                let t = c.tree();
+                let n = t.tree(o.tree).and_then(|x| x.get(&o.block)).expect("node");
+                let b = t
+                    .elevation()
+                    .get(&o.block)
+                    .and_then(|e| e.bounds.clone())
+                    .expect("bounds");
+                let (kind, w) = match o.tree {
+                    Tree::Elevation => (Kind::Elevation, t.elevation().width),
+                    Tree::Colour => (Kind::Colour, t.colour().expect("colour").width),
+                };
+                let fp = Footprint::of(&b);
+                let m = r.measure(kind, &fp, w as f64, n.record.error as f64, 0.0);
+                assert!(
+                    m.a > tol,
+                    "{:?} {:?} requested at {} px ≤ {tol} px",
+                    o.tree,
+                    o.block,
+                    m.a
+                );
+                sent += 1;
+            }
+            s.submit(&out);
+            for (id, bytes) in s.tick(db()) {
+                c.deliver(id, Ok(bytes));
+            }
+            let idle = out.send.is_empty()
+                && c.queue().in_flight() == 0
+                && c.pending_ops().is_empty()
+                && s.pending() == 0;
+            quiet = if idle { quiet + 1 } else { 0 };
+            last = Some(out);
+            if quiet >= 3 {
+                break;
+            }
+        }
+        assert!(quiet >= 3, "no convergence at {tol} px, {alt} m");
+        eprintln!("{tol} px, {alt} m: {sent} requests");
+        assert!(
+            sent >= 5,
+            "only {sent} requests at {tol} px, {alt} m: the view tests too little"
+        );
+        let out = last.expect("frames");
+        let et = c.tree().elevation();
+        for d in &out.draw {
+            let n = et.get(&d.block).expect("drawn");
+            let finest = d.lod == 0 && n.child_refs.as_ref().is_some_and(|c| c.is_empty());
+            assert!(
+                d.screen_error <= tol || finest,
+                "{:?} at LOD {}: {} px > {tol} px",
+                d.block,
+                d.lod,
+                d.screen_error
+            );
+        }
+        c.tree().validate().expect("valid");
+    }
 }
