@@ -39,7 +39,8 @@ enum Cmd {
         levels: u8,
         /// Procedural detail region, repeatable: a circle of RADIUS_KM around
         /// LAT,LON (degrees) built down to leaf LEVEL (>= --levels, <= 20),
-        /// graded outside it; colour stays at --levels.
+        /// graded outside it; colour follows the elevation to LEVEL inside
+        /// the region and stays at --levels outside it.
         #[arg(
             long,
             value_name = "LAT,LON,RADIUS_KM,LEVEL",

@@ -14,6 +14,12 @@
 //!
 //! Procedural planets with detail regions ([`plan_for_caps`]) use the same
 //! split-then-grade scheme: a uniform base, deepened inside spherical caps.
+//! Their colour tree follows the elevation tree down to the caps' levels
+//! where the caps deepened it (the blocks split before grading), and stops
+//! at the base level elsewhere, including the graded band around the caps.
+//! Every colour-split block is an elevation-split block, so a colour block
+//! exists only where the elevation block of the same id does (§4.4.1); the
+//! colour tree needs no grading (only elevation leaves stitch edges).
 
 use crate::source::ElevationStack;
 use planet_core::cube::{angle_between, normalize, plane_from_angle};
@@ -41,6 +47,10 @@ pub enum Plan {
         max_level: u8,
         /// Colour truncation level, `None` for no colour.
         colour_level: Option<u8>,
+        /// Colour blocks split although at or below `colour_level` (detail
+        /// regions): a subset of `split`, closed under parents down to
+        /// `colour_level` (every one's parent is colour-split too).
+        colour_deep: HashSet<BlockId>,
     },
 }
 
@@ -53,10 +63,16 @@ impl Plan {
         }
     }
 
-    /// Whether the colour block (which must exist) is split.
+    /// Whether the colour block (which must exist) is split: above the
+    /// colour truncation level where the elevation block is, and in the
+    /// deep colour set. Never where the elevation block is not (§4.4.1).
     pub fn colour_split(&self, b: BlockId) -> bool {
         match self.colour_level() {
-            Some(c) => b.level < c && self.elevation_split(b),
+            Some(c) => {
+                self.elevation_split(b)
+                    && (b.level < c
+                        || matches!(self, Plan::Explicit { colour_deep, .. } if colour_deep.contains(&b)))
+            }
             None => false,
         }
     }
@@ -80,7 +96,14 @@ impl Plan {
 
     /// The deepest colour level actually present.
     pub fn colour_max_level(&self) -> u8 {
-        self.colour_level().unwrap_or(0).min(self.max_level())
+        let truncated = self.colour_level().unwrap_or(0).min(self.max_level());
+        match self {
+            Plan::Explicit { colour_deep, .. } if self.colour_level().is_some() => colour_deep
+                .iter()
+                .map(|b| b.level + 1)
+                .fold(truncated, u8::max),
+            _ => truncated,
+        }
     }
 
     /// Number of (elevation, colour) blocks in the trees.
@@ -96,10 +119,16 @@ impl Plan {
                     colour_level.map_or(0, |c| count(c.min(*levels))),
                 )
             }
-            Plan::Explicit { split, .. } => {
+            Plan::Explicit {
+                split, colour_deep, ..
+            } => {
                 let e = 6 + 4 * split.len() as u64;
                 let c = match self.colour_level() {
-                    Some(cl) => 6 + 4 * split.iter().filter(|b| b.level < cl).count() as u64,
+                    Some(cl) => {
+                        let above = split.iter().filter(|b| b.level < cl).count();
+                        let deep = colour_deep.iter().filter(|b| b.level >= cl).count();
+                        6 + 4 * (above + deep) as u64
+                    }
                     None => 0,
                 };
                 (e, c)
@@ -138,6 +167,7 @@ pub fn plan_for_sources(stack: &ElevationStack, colour_level: Option<u8>, max_le
         split,
         max_level: deepest,
         colour_level,
+        colour_deep: HashSet::new(),
     }
 }
 
@@ -181,9 +211,12 @@ pub fn block_meets_cap(b: BlockId, cap: &Cap) -> bool {
 /// Plan a procedural planet (thesis §4.3.3, §5.3): every block split down to
 /// `levels`; blocks whose footprint meets a cap split further, down to the
 /// cap's level; then graded to [`MAX_GRADE`]. The colour tree is truncated
-/// at `colour_level` (uniform, at most `levels`, so every colour block
-/// exists and the truncation keeps the grading). Without a cap deeper than
-/// `levels` this is the [`Plan::Uniform`] plan.
+/// at `colour_level` (at most `levels`) except where the caps split blocks:
+/// there colour follows elevation down to the cap's level
+/// ([`Plan::Explicit::colour_deep`] holds the cap-split blocks at or below
+/// `colour_level` whose parents are colour-split; the grading's extra
+/// splits are elevation only). Without a cap deeper than `levels` this is
+/// the [`Plan::Uniform`] plan.
 pub fn plan_for_caps(levels: u8, caps: &[Cap], colour_level: Option<u8>) -> Plan {
     if caps.iter().all(|c| c.level <= levels) {
         return Plan::Uniform {
@@ -191,16 +224,25 @@ pub fn plan_for_caps(levels: u8, caps: &[Cap], colour_level: Option<u8>) -> Plan
             colour_level,
         };
     }
+    let cl = colour_level.unwrap_or(0);
     let mut split = HashSet::new();
-    let mut stackv: Vec<BlockId> = Face::ALL.iter().map(|&f| BlockId::root(f)).collect();
-    while let Some(b) = stackv.pop() {
-        let deeper = b.level < levels
-            || caps
-                .iter()
-                .any(|c| b.level < c.level && block_meets_cap(b, c));
-        if deeper {
+    let mut colour_deep = HashSet::new();
+    // (block, whether its colour block exists).
+    let mut stackv: Vec<(BlockId, bool)> = Face::ALL
+        .iter()
+        .map(|&f| (BlockId::root(f), colour_level.is_some()))
+        .collect();
+    while let Some((b, colour)) = stackv.pop() {
+        let by_cap = caps
+            .iter()
+            .any(|c| b.level < c.level && block_meets_cap(b, c));
+        if b.level < levels || by_cap {
             split.insert(b);
-            stackv.extend(b.children());
+            let colour_split = colour && (b.level < cl || by_cap);
+            if colour_split && b.level >= cl {
+                colour_deep.insert(b);
+            }
+            stackv.extend(b.children().map(|c| (c, colour_split)));
         }
     }
     grade(&mut split);
@@ -209,6 +251,7 @@ pub fn plan_for_caps(levels: u8, caps: &[Cap], colour_level: Option<u8>) -> Plan
         split,
         max_level: deepest,
         colour_level,
+        colour_deep,
     }
 }
 
@@ -281,6 +324,20 @@ mod tests {
         assert!(crossed, "grading reached the neighbouring faces");
     }
 
+    /// The leaves of a plan's colour tree.
+    fn colour_leaves(plan: &Plan) -> Vec<BlockId> {
+        let mut out = Vec::new();
+        let mut st: Vec<BlockId> = Face::ALL.iter().map(|&f| BlockId::root(f)).collect();
+        while let Some(b) = st.pop() {
+            if plan.colour_split(b) {
+                st.extend(b.children());
+            } else {
+                out.push(b);
+            }
+        }
+        out
+    }
+
     fn dir(lat: f64, lon: f64) -> [f64; 3] {
         planet_core::cube::direction_from_lat_lon(lat.to_radians(), lon.to_radians())
     }
@@ -351,12 +408,49 @@ mod tests {
                 }
             }
         }
-        // Colour stays uniform at the base level.
+        // Colour follows the caps down to level 9 and stops at the base
+        // level 3 elsewhere, inside the elevation tree (§4.4.1).
         assert!(plan.colour_split(
             BlockId::new(Face::NORTH, 2, 0, 0).unwrap_or(BlockId::root(Face::NORTH))
         ));
+        assert_eq!(plan.colour_max_level(), 9);
+        let colour_leaves = colour_leaves(&plan);
         let (_, colour_blocks) = plan.block_counts();
-        assert_eq!(colour_blocks, 6 * 85);
+        let mut colour_count = 0u64;
+        let mut st: Vec<BlockId> = Face::ALL.iter().map(|&f| BlockId::root(f)).collect();
+        while let Some(b) = st.pop() {
+            colour_count += 1;
+            if plan.colour_split(b) {
+                assert!(
+                    split.contains(&b),
+                    "colour {b:?} split over an elevation leaf"
+                );
+                st.extend(b.children());
+            }
+        }
+        assert_eq!(colour_blocks, colour_count);
+        assert!(colour_blocks > 6 * 85);
+        for leaf in &colour_leaves {
+            if caps.iter().any(|c| block_meets_cap(*leaf, c)) {
+                // Inside a cap: as deep as the elevation.
+                assert_eq!(leaf.level, 9, "{leaf:?}");
+                assert!(!split.contains(leaf));
+            } else {
+                // Outside: the base level, or the child of a cap's block.
+                assert!(
+                    leaf.level == 3
+                        || caps
+                            .iter()
+                            .any(|c| block_meets_cap(leaf.ancestor(leaf.level - 1), c)),
+                    "{leaf:?}"
+                );
+            }
+        }
+        // Without colour, no colour tree at all.
+        let bare = plan_for_caps(3, &caps, None);
+        assert_eq!(bare.block_counts().1, 0);
+        assert!(!bare.colour_split(BlockId::root(Face::NORTH)));
+        assert_eq!(bare.colour_max_level(), 0);
         // No cap deeper than the base: the uniform plan.
         assert!(matches!(
             plan_for_caps(

@@ -275,9 +275,9 @@ impl Procedural {
                 ..r.cap(&opts.datum)
             })
             .collect();
-        // Colour stays at the base level: every colour block then exists
-        // and the colour tree is the uniform truncation `Plan::colour_split`
-        // describes (deep colour would multiply the build's cost).
+        // Colour is truncated at the base level, except inside the regions,
+        // where it follows the elevation down to the region's level
+        // (`plan_for_caps`; not in the graded band around them).
         let plan = plan_for_caps(opts.levels, &caps, opts.colour.then_some(opts.levels));
         Procedural {
             seed: opts.seed,
@@ -564,7 +564,18 @@ impl Procedural {
         let side = EW + 1;
         let ratio = EW as f64 / CW as f64;
         let l = b.level as i32;
+        // `(|∂h/∂x| + |∂h/∂y|)` per grid cell times `1.56 / spacing` (the
+        // spacing is about `1.57e5 m / 2^L` on the Earth), so a slope of 1
+        // is a gradient of about 0.32 per axis at every level.
         let inv_slope_scale = (2.0f64.powi(l) * 1.0e-5) as f32;
+        // Leaves below the base level (detail regions) take the slope at
+        // each texel from the cell's bilinear gradient instead of one
+        // forward difference per cell: the rough octaves vary from cell to
+        // cell, and a per-cell slope paints 2×2-texel squares that the
+        // record's LOD 1 already holds (an error of 0 or 1). The base
+        // level's leaves keep the per-cell slope (uniform planets are
+        // unchanged).
+        let deep = b.level > self.levels;
         // Texel centre position in grid cells and lattice cells, per column
         // (and the same per row).
         struct Axis {
@@ -631,10 +642,26 @@ impl Procedural {
                 let d = v[m + 1] - v[m];
                 h[m] = v[m] + d * fx_even;
                 h[H + m] = v[m] + d * fx_odd;
-                let a00 = e0[m] as f32;
-                slope[m] =
-                    ((e0[m + 1] as f32 - a00).abs() + (e1[m] as f32 - a00).abs()) * inv_slope_scale;
-                slope[H + m] = slope[m];
+            }
+            if deep {
+                // The gradient of the cell's bilinear surface at each texel
+                // centre (the cell's corners only: seam-free): x along the
+                // texel row, y between the two texel columns of the cell.
+                for m in 0..H {
+                    let (a00, a10) = (e0[m] as f32, e0[m + 1] as f32);
+                    let (a01, a11) = (e1[m] as f32, e1[m + 1] as f32);
+                    let gx = ((a10 - a00) + ((a11 - a01) - (a10 - a00)) * fy).abs();
+                    let (dy0, dy1) = (a01 - a00, a11 - a10);
+                    slope[m] = (gx + (dy0 + (dy1 - dy0) * fx_even).abs()) * inv_slope_scale;
+                    slope[H + m] = (gx + (dy0 + (dy1 - dy0) * fx_odd).abs()) * inv_slope_scale;
+                }
+            } else {
+                for m in 0..H {
+                    let a00 = e0[m] as f32;
+                    slope[m] = ((e0[m + 1] as f32 - a00).abs() + (e1[m] as f32 - a00).abs())
+                        * inv_slope_scale;
+                    slope[H + m] = slope[m];
+                }
             }
             let (mut r, mut g, mut bl) = ([0f32; CW], [0f32; CW], [0f32; CW]);
             for q in 0..CW {

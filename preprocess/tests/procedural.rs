@@ -1,7 +1,7 @@
 //! Procedural planet: build, verify, corruption detection, exact samples.
 
-use planet_core::format::DbFile;
-use planet_core::{BlockId, Edge};
+use planet_core::format::{parse_record, ChildRef, DbFile};
+use planet_core::{codec, lod, BlockId, Edge, Face};
 use planet_preprocess::db::{verify, Sampler};
 use planet_preprocess::plan::Plan;
 use planet_preprocess::{
@@ -188,8 +188,9 @@ fn detail_region_edges_are_bit_identical() {
         panic!("explicit plan expected");
     };
     assert_eq!(stats.max_level, 8);
-    assert_eq!(stats.colour_max_level, 4);
-    assert_eq!(stats.colour_records, 6 * 341);
+    assert_eq!(stats.colour_max_level, 8);
+    assert_eq!(stats.colour_records, gen.plan().block_counts().1);
+    assert!(stats.colour_records > 6 * 341);
     assert_eq!(stats.elevation_records, 6 + 4 * split.len() as u64);
     let rep = verify(&path).unwrap();
     assert_eq!(rep.max_level, 8);
@@ -227,4 +228,127 @@ fn detail_region_edges_are_bit_identical() {
     // A point in the region descends to a level-8 leaf, one outside to 4.
     assert_eq!(s.sample(45.0, 0.1).unwrap().leaf.level, 8);
     assert_eq!(s.sample(-30.0, 100.0).unwrap().leaf.level, 4);
+}
+
+/// Every colour block of a database with its reference (error) and full
+/// grid, walking the colour tree from the header.
+fn colour_blocks(path: &Path) -> HashMap<BlockId, (ChildRef, Vec<lod::Rgb>)> {
+    let db = DbFile::open(path).unwrap();
+    let ct = db.header.colour.clone().unwrap();
+    let w = ct.block_width as usize;
+    let mut out = HashMap::new();
+    for (fi, face) in Face::ALL.iter().enumerate() {
+        let mut stack = vec![(
+            BlockId::root(*face),
+            ct.root_records[fi],
+            ct.root_first_lods[fi].clone(),
+        )];
+        while let Some((b, r, lod1)) = stack.pop() {
+            let bytes = db.read_record(&r).unwrap();
+            let rec = parse_record(&bytes, None).unwrap();
+            let full = codec::decode_colour(&rec.raw_payload().unwrap(), &lod1, w).unwrap();
+            for (k, c) in rec.header.children.iter().enumerate() {
+                stack.push((b.child(k), *c, lod::split_colour(&full, w, k)));
+            }
+            out.insert(b, (r, full));
+        }
+    }
+    out
+}
+
+/// Inside a detail region the colour tree is as deep as the elevation tree
+/// (colour blocks at the region's level, bound to elevation blocks of the
+/// same id, §4.4.1), with the generator's colours and honest errors;
+/// outside it, the colour tree stops at the base level with the colours a
+/// base-level leaf had before, also where the elevation goes deeper.
+#[test]
+fn detail_region_colour_follows_the_elevation() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.db");
+    let mut opts = small(3, true);
+    opts.detail = vec!["45,0,150,7".parse().unwrap()];
+    let stats = build_procedural(&opts, &path).unwrap();
+    assert_eq!((stats.max_level, stats.colour_max_level), (7, 7));
+    let gen = Procedural::new(&opts);
+    let plan = gen.plan();
+    let Plan::Explicit { split, .. } = &plan else {
+        panic!("explicit plan expected");
+    };
+    let rep = verify(&path).unwrap();
+    assert_eq!(rep.colour_records, stats.colour_records);
+    let s = Sampler::open(&path).unwrap();
+    let mut elevation = std::collections::HashSet::new();
+    s.for_each_elevation_block(|b, _| {
+        elevation.insert(b);
+    })
+    .unwrap();
+    let colour = colour_blocks(&path);
+    assert_eq!(colour.len() as u64, stats.colour_records);
+    let cap = opts.detail[0].cap(&opts.datum);
+    let (mut deep_leaves, mut deep_detail, mut outside_leaves, mut rim) = (0, 0, 0, 0);
+    for (b, (r, full)) in &colour {
+        // Binding: a colour block only where the elevation block exists,
+        // and split only where the elevation block is.
+        assert!(elevation.contains(b), "colour {b:?} without elevation");
+        let colour_split = colour.contains_key(&b.child(0));
+        assert!(!colour_split || split.contains(b), "{b:?}");
+        assert_eq!(colour_split, plan.colour_split(*b), "{b:?}");
+        // The generator's colours (levels >= 3: shallower ones would
+        // regenerate whole faces).
+        if b.level >= 3 {
+            assert_eq!(full, &gen.colour_grid(*b), "{b:?}");
+        }
+        let lod1 = lod::colour_filter(full, 128);
+        let own = planet_preprocess::build::colour_lod_error(full, &lod1, 128);
+        if colour_split {
+            // Own LOD 1 error plus the worst child's: never below either.
+            let worst = (0..4)
+                .map(|k| colour[&b.child(k)].0.error)
+                .fold(0f32, f32::max);
+            assert_eq!(r.error, own as f32 + worst, "{b:?}");
+            continue;
+        }
+        // A leaf's error is exactly its LOD 1 deviation.
+        assert_eq!(r.error, own as f32, "{b:?}");
+        if plan_meets(b, &cap) {
+            assert_eq!(b.level, 7, "colour leaf {b:?} in the region");
+            assert!(!split.contains(b));
+            deep_leaves += 1;
+            deep_detail += (r.error >= 2.0) as usize;
+        } else if b.level == 3 {
+            outside_leaves += 1;
+        } else {
+            // Below the base level outside the region: a child of a block
+            // meeting it, as deep as the elevation there.
+            assert!(plan_meets(&b.ancestor(b.level - 1), &cap), "{b:?}");
+            assert!(!split.contains(b), "{b:?}");
+            rim += 1;
+        }
+    }
+    assert!(deep_leaves >= 16, "{deep_leaves} deep colour leaves");
+    // Deep leaves hold colour their first LOD lacks (texel-level slope).
+    assert!(
+        deep_detail * 2 >= deep_leaves,
+        "{deep_detail}/{deep_leaves}"
+    );
+    assert!(outside_leaves > 300 && rim >= 8, "{outside_leaves} {rim}");
+    // Points: deep colour in the region, base colour far away.
+    let deepest = |lat: f64, lon: f64| {
+        let p = planet_core::cube::direction_from_lat_lon(lat.to_radians(), lon.to_radians());
+        let fc = planet_core::cube::FaceCoord::from_direction(p);
+        (0..=7u8)
+            .filter(|&l| {
+                let n = 1u32 << l;
+                let cell = |v: f64| ((v * n as f64) as u32).min(n - 1);
+                colour.contains_key(&BlockId::new(fc.face, l, cell(fc.s), cell(fc.t)).unwrap())
+            })
+            .max()
+            .unwrap()
+    };
+    assert_eq!(deepest(45.0, 0.1), 7);
+    assert_eq!(deepest(-30.0, 100.0), 3);
+}
+
+fn plan_meets(b: &BlockId, cap: &planet_preprocess::plan::Cap) -> bool {
+    planet_preprocess::plan::block_meets_cap(*b, cap)
 }
