@@ -38,8 +38,13 @@
 //! would cover more than `tol` pixels and the record adds a colour
 //! difference (its error is at least one 8-bit step).
 //!
-//! The priority of a request is the screen-space error it removes (worst
-//! first), so the largest visible errors go first whatever their distance.
+//! The priority of a request is the screen-space error it removes per byte
+//! it costs, `(s1 − s0) / (size + 256)`: ordering jobs by weight over
+//! duration minimises the weighted sum of their completion times (Smith's
+//! rule, 1956), and here the weights are the pixels of error that each
+//! record removes and the durations its bytes on the link, so this order
+//! minimises the error integrated over the flight when the link is the
+//! bottleneck. Splits cost no bytes and go by `s0`.
 //!
 //! The other policies are baselines measured in the same run
 //! (`planet-bench flight --policy`), each with the same refinement test and
@@ -79,6 +84,9 @@ pub const DEFAULT_MAX_SSE_PX: f64 = 1.0;
 pub const KEEP_LOD0: f64 = 0.5;
 /// A split block merges when its own first LOD is within `tol` times this.
 pub const MERGE_AT: f64 = 0.25;
+/// Bytes a request costs besides its record (request, stream and response
+/// framing, packet headers; docs/PROTOCOL.md), in the priority per byte.
+pub const REQUEST_OVERHEAD: f64 = 256.0;
 
 /// A client policy: refinement test and request order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
@@ -432,11 +440,19 @@ impl Refiner {
     }
 
     /// Priority (higher first) of loading LOD 0 of a leaf with LOD `lod`,
-    /// at `level`, centred at `centre`.
-    pub fn load_priority(&self, m: &Measure, lod: u8, level: u8, centre: DVec3) -> f64 {
+    /// at `level`, centred at `centre`, whose record is `size` bytes.
+    pub fn load_priority(&self, m: &Measure, lod: u8, level: u8, centre: DVec3, size: u32) -> f64 {
         match self.policy {
             Policy::Thesis => refine_importance(lod, m.a),
-            Policy::Ours => m.a,
+            Policy::Ours => {
+                let gain = (m.a - m.b).max(m.a * 1e-3);
+                let p = gain / (size as f64 + REQUEST_OVERHEAD);
+                if p.is_finite() {
+                    p
+                } else {
+                    f64::MAX
+                }
+            }
             Policy::Cesium => self.cesium(m, centre),
             Policy::Breadth => breadth(m, level),
         }
@@ -584,7 +600,7 @@ mod tests {
             for p in Policy::ALL {
                 let r = Refiner::new(p, &v, 1e4, tol);
                 let m = r.measure(Kind::Elevation, &ball(c, radius), 64.0, e1, e0);
-                prop_assert!(r.load_priority(&m, 1, 10, c).is_finite());
+                prop_assert!(r.load_priority(&m, 1, 10, c, 3000).is_finite());
                 prop_assert!(r.split_priority(&m, 10, c).is_finite());
             }
         }
@@ -721,8 +737,8 @@ mod tests {
         let aside = DVec3::new(6.4e6, 3e5, 0.0);
         let ma = r.measure(Kind::Elevation, &ball(ahead, 1e3), 64.0, 10.0, 5.0);
         let ms = r.measure(Kind::Elevation, &ball(aside, 1e3), 64.0, 10.0, 5.0);
-        assert!(r.load_priority(&ma, 1, 5, ahead) > r.load_priority(&ms, 1, 5, aside));
+        assert!(r.load_priority(&ma, 1, 5, ahead, 100) > r.load_priority(&ms, 1, 5, aside, 100));
         let b = Refiner::new(Policy::Breadth, &v, 1e4, 2.0);
-        assert!(b.load_priority(&ma, 1, 9, ahead) < b.load_priority(&ms, 1, 5, aside));
+        assert!(b.load_priority(&ma, 1, 9, ahead, 100) < b.load_priority(&ms, 1, 5, aside, 100));
     }
 }

@@ -156,7 +156,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 continue;
             }
             if d.load {
-                let p = refiner.load_priority(&m, n.lod, id.level, b.centre);
+                let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
                 cx.load(Tree::Elevation, id, p, false);
             } else if d.split && n.can_split_data().is_ok() {
                 let p = refiner.split_priority(&m, id.level, b.centre);
@@ -202,7 +202,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                     continue;
                 }
                 if d.load {
-                    let p = refiner.load_priority(&m, n.lod, id.level, b.centre);
+                    let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
                     cx.load(Tree::Colour, id, p, false);
                 } else if d.split && tree.can_split(Tree::Colour, &id).is_ok() {
                     cx.out.ops.push(TreeOp {
@@ -1264,7 +1264,13 @@ impl Selector {
                     tree: Tree::Elevation,
                     block: id,
                     record: self.cold[h.slot as usize].record,
-                    importance: refiner.load_priority(&mm, h.lod, id.level, h.centre),
+                    importance: refiner.load_priority(
+                        &mm,
+                        h.lod,
+                        id.level,
+                        h.centre,
+                        self.cold[h.slot as usize].record.size,
+                    ),
                     forced: false,
                 });
             } else if d.split && h.splittable {
@@ -1331,7 +1337,13 @@ impl Selector {
                         tree: Tree::Colour,
                         block: c.id,
                         record: c.record,
-                        importance: refiner.load_priority(&mm, c.lod, c.id.level, h.centre),
+                        importance: refiner.load_priority(
+                            &mm,
+                            c.lod,
+                            c.id.level,
+                            h.centre,
+                            c.record.size,
+                        ),
                         forced: false,
                     });
                 } else if d.split && c.splittable && tree.can_split(Tree::Colour, &c.id).is_ok() {

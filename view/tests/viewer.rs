@@ -155,9 +155,12 @@ fn render_command_writes_frames_and_the_error_falls_as_the_stream_converges() {
         last.psnr > first.psnr + 1.0,
         "PSNR rises as the stream converges"
     );
+    // The default client refines elevation only where its screen-space
+    // error exceeds 1 px: from 350 km the first blocks may already be
+    // within it (the depth error then stays), never worse.
     assert!(
-        last.rmse < first.rmse,
-        "depth error falls as the stream converges"
+        last.rmse <= first.rmse,
+        "depth error does not grow as the stream converges"
     );
 }
 

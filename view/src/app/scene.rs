@@ -392,7 +392,9 @@ mod tests {
             db.header.clone(),
             ClientConfig {
                 decode_threads: 0,
-                ..ClientConfig::default()
+                // The thesis's spacing criterion refines the smooth
+                // synthetic database; the policy is not what is tested.
+                ..ClientConfig::for_policy(planet_client::Policy::Thesis, 1.0)
             },
         )
         .unwrap();
