@@ -57,6 +57,9 @@ pub struct FlightArgs {
     /// one (Cesium's maximumScreenSpaceError is set to it too).
     #[arg(long, default_value_t = planet_client::refinement::DEFAULT_MAX_SSE_PX)]
     pub max_sse: f64,
+    /// Budget of resident samples in MB (default: none).
+    #[arg(long)]
+    pub memory: Option<f64>,
     /// Link specification (linksim syntax, e.g. "1mbit,100ms,2%loss" or
     /// "loopback"); repeat for several runs.
     #[arg(long = "link", required = true)]
@@ -323,6 +326,7 @@ pub fn run(a: FlightArgs) -> Result<()> {
 /// (a triangle budget).
 fn client_config(a: &FlightArgs, policy: Policy) -> ClientConfig {
     let mut cfg = ClientConfig::for_policy(policy, a.max_sse);
+    cfg.memory_budget = a.memory.map(|mb| (mb.max(0.0) * 1e6) as u64);
     if a.no_predict {
         cfg.predict_view = false;
     }

@@ -53,6 +53,10 @@ pub struct ClientConfig {
     /// Bound the bytes in flight by the link's measured bandwidth-delay
     /// product ([`crate::link_estimate`]) besides the queue's count.
     pub link_window: bool,
+    /// Budget of resident sample bytes ([`Client::resident_bytes`]); over
+    /// it, the tolerance is coarsened until the least important blocks
+    /// merge and the tree fits (`None`: no budget).
+    pub memory_budget: Option<u64>,
     /// The load request queue.
     pub queue: QueueConfig,
     /// Split/merge operations executed per frame at most.
@@ -121,6 +125,7 @@ impl ClientConfig {
             policy,
             max_sse_px: sanitize_tolerance(max_sse_px),
             link_window,
+            memory_budget: None,
             queue,
             tree_ops_per_frame: 64,
             decode_threads: 2,
@@ -232,6 +237,8 @@ pub struct Client {
     clock: f64,
     /// Records applied but not drawn at their new LOD yet, with their bytes.
     not_drawn: FastMap<(Tree, BlockId), u64>,
+    /// Factor ≥ 1 on the tolerance while the tree is over its memory budget.
+    memory_factor: f64,
 }
 
 impl Client {
@@ -297,6 +304,7 @@ impl Client {
             link: LinkEstimator::new(),
             clock: 0.0,
             not_drawn: FastMap::default(),
+            memory_factor: 1.0,
         })
     }
 
@@ -329,18 +337,32 @@ impl Client {
     /// quality controller when it regulates a frame rate or triangle budget
     /// (triangles ∝ 1/tolerance², so `tol = max_sse · sqrt(QF₀ / QF)`, never
     /// below `max_sse`).
+    /// The memory budget ([`ClientConfig::memory_budget`]) coarsens it
+    /// further while the tree is over budget.
     pub fn tolerance(&self) -> f64 {
-        tolerance_for(&self.config, self.quality.qf())
+        tolerance_for(&self.config, self.quality.qf()) * self.memory_factor
+    }
+
+    /// Approximate bytes of resident samples: a full grid per node of each
+    /// tree (elevation `(W+1)²` 16-bit samples, colour `Wc²` RGB texels; the
+    /// split nodes' grids are counted too, an over-estimate of at most a
+    /// third).
+    pub fn resident_bytes(&self) -> u64 {
+        let e = self.tree.elevation();
+        let mut b = e.len() as u64 * ((e.width + 1) * (e.width + 1) * 2) as u64;
+        if let Some(c) = self.tree.colour() {
+            b += c.len() as u64 * (c.width * c.width * 3) as u64;
+        }
+        b
     }
 
     /// The refiner this client would use for `view` now.
     pub fn refiner(&self, view: &View) -> Refiner {
-        let qf = self.quality.qf();
         Refiner::new(
             self.config.policy,
             view,
-            qf,
-            tolerance_for(&self.config, qf),
+            self.quality.qf(),
+            self.tolerance(),
         )
     }
 
@@ -502,9 +524,19 @@ impl Client {
         }
         // 2. Quality factor.
         let qf = self.quality.update(dt, self.last_triangles as f64);
-        // 3. Selection.
+        // 3. Selection. Over the memory budget the tolerance coarsens by
+        // 5 % a frame until the least needed blocks merge (MERGE_AT of the
+        // tolerance) and the tree fits; under 90 % of it, it relaxes back.
+        if let Some(budget) = self.config.memory_budget {
+            let r = self.resident_bytes();
+            if r > budget {
+                self.memory_factor = (self.memory_factor * 1.05).min(1e6);
+            } else if (r as f64) < budget as f64 * 0.9 {
+                self.memory_factor = (self.memory_factor / 1.05).max(1.0);
+            }
+        }
         let view = View::new(camera, self.r_min, self.r_max);
-        let tol = tolerance_for(&self.config, qf);
+        let tol = tolerance_for(&self.config, qf) * self.memory_factor;
         let refiner = Refiner::new(self.config.policy, &view, qf, tol);
         let sel = self.selector.select(&self.tree, &view, &refiner);
         // 4. Requests.

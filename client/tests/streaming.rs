@@ -606,3 +606,42 @@ fn sse_refines_exactly_above_the_tolerance() {
         c.tree().validate().expect("valid");
     }
 }
+
+/// A memory budget (`ClientConfig::memory_budget`) coarsens the tolerance
+/// until the least needed blocks merge: the same view converges within half
+/// the bytes it takes without a budget, and still draws every area.
+#[test]
+fn memory_budget_bounds_the_resident_tree() {
+    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 2_000_000.0);
+    let cam = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
+    let run = |budget: Option<u64>| {
+        let cfg = ClientConfig {
+            decode_threads: 0,
+            memory_budget: budget,
+            // The synthetic database is smooth: a fine tolerance makes a
+            // tree of a few hundred nodes.
+            ..ClientConfig::for_policy(Policy::Ours, 0.01)
+        };
+        let mut c = Client::new(db().header.clone(), cfg).expect("client");
+        let mut s = FakeServer::new(1);
+        let mut out = None;
+        for _ in 0..3000 {
+            out = Some(step(&mut c, &mut s, &cam));
+        }
+        c.tree().validate().expect("valid");
+        (
+            c.resident_bytes(),
+            out.expect("frames").draw.len(),
+            c.tolerance(),
+        )
+    };
+    let (free, drawn_free, _) = run(None);
+    let budget = free / 2;
+    let (bounded, drawn, tol) = run(Some(budget));
+    eprintln!(
+        "resident {free} B without a budget, {bounded} B with {budget} B (tolerance {tol:.3} px)"
+    );
+    assert!(bounded <= budget, "{bounded} > {budget}");
+    assert!(tol > 0.01, "the tolerance was coarsened");
+    assert!(drawn > 0 && drawn < drawn_free);
+}

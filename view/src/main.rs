@@ -115,6 +115,10 @@ struct WindowArgs {
     /// controller coarsens it when the frame rate falls short).
     #[arg(long, default_value_t = planet_client::refinement::DEFAULT_MAX_SSE_PX)]
     max_sse: f64,
+    /// Budget of resident samples in MB: over it the least important
+    /// blocks are merged away (default: none).
+    #[arg(long)]
+    memory: Option<f64>,
     /// Start at (and return with G to) LAT,LON,ALT (degrees, metres).
     #[arg(long, value_name = "LAT,LON,ALT", allow_hyphen_values = true)]
     goto: Option<String>,
@@ -315,6 +319,7 @@ fn window(a: WindowArgs) -> Result<()> {
         width: a.width.max(16),
         height: a.height.max(16),
         max_sse: a.max_sse,
+        memory_mb: a.memory,
         screenshot: a.screenshot,
         exit_after_frames: a.exit_after_frames,
     })

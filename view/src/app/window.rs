@@ -62,6 +62,8 @@ pub struct WindowOptions {
     pub exit_after_frames: Option<u64>,
     /// Largest screen-space error in pixels the client aims at.
     pub max_sse: f64,
+    /// Budget of resident samples in MB.
+    pub memory_mb: Option<f64>,
 }
 
 fn no_display_message(detail: &str) -> String {
@@ -96,6 +98,7 @@ pub fn run(opts: WindowOptions) -> Result<()> {
             ),
             ..QualityConfig::default()
         },
+        memory_budget: opts.memory_mb.map(|mb| (mb.max(0.0) * 1e6) as u64),
         ..ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse)
     };
     let client = connect::connect(&rt, &endpoint.session, cfg)?;

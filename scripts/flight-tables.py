@@ -1,0 +1,61 @@
+#!/usr/bin/env python3
+"""Markdown tables from `planet-bench flight` summary.json files.
+
+Usage: scripts/flight-tables.py OUT_DIR [OUT_DIR ...]
+
+One table per summary: a row per (link, policy) with the error integrals,
+the time to the tolerance after each stop, bytes, needed/delivered,
+relevant and wasted ratios; then, per link, `ours` over `cesium` for the
+integrals (the issue's goal is at most 0.5).
+"""
+import json
+import sys
+
+
+def fmt_stop(v):
+    return "—" if v is None else f"{v:.2f}"
+
+
+def main():
+    for d in sys.argv[1:]:
+        with open(f"{d}/summary.json") as f:
+            rows = json.load(f)
+        if not rows:
+            continue
+        print(f"**{rows[0]['trajectory']}** (`{d}`; tolerance {rows[0]['max_sse_px']} px,"
+              f" bytes needed along the path {rows[0]['needed_bytes'] / 1e6:.1f} MB)\n")
+        print("| link | policy | ∫ mean SSE dt (px·s) | ∫ max SSE dt | ∫ per-pixel SSE dt |"
+              " to tolerance after each stop (s) | MB received | needed / delivered |"
+              " relevant | wasted | requests / cancels |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            stops = ", ".join(f"{a:.0f}: {fmt_stop(b)}" for a, b in
+                              zip(r["stops_s"], r["time_to_1px_after_stops_s"]))
+            nod = r["needed_over_delivered"]
+            print(f"| {r['link']} | {r['policy']} | {r['error_integral_px_s']:.0f} |"
+                  f" {r['max_sse_integral_px_s']:.0f} | {r['pixel_error_integral_px_s']:.0f} |"
+                  f" {stops} | {r['bytes'] / 1e6:.2f} | {'—' if nod is None else f'{nod:.1f}×'} |"
+                  f" {100 * r['relevant_ratio']:.2f} % | {100 * r['wasted_ratio']:.2f} % |"
+                  f" {r['requests']} / {r['cancels']} |")
+        print()
+        by = {(r["link"], r["policy"]): r for r in rows}
+        links = list(dict.fromkeys(r["link"] for r in rows))
+        if any((l, "cesium") in by and (l, "ours") in by for l in links):
+            print("| link | ours / cesium: ∫ mean SSE | ∫ max SSE | ∫ per-pixel SSE |"
+                  " stops (ours / cesium, s) |")
+            print("|---|---|---|---|---|")
+            for l in links:
+                o, c = by.get((l, "ours")), by.get((l, "cesium"))
+                if not o or not c:
+                    continue
+                q = lambda k: o[k] / c[k] if c[k] else float("nan")
+                stops = ", ".join(f"{fmt_stop(a)} / {fmt_stop(b)}" for a, b in
+                                  zip(o["time_to_1px_after_stops_s"],
+                                      c["time_to_1px_after_stops_s"]))
+                print(f"| {l} | {q('error_integral_px_s'):.2f} | {q('max_sse_integral_px_s'):.2f} |"
+                      f" {q('pixel_error_integral_px_s'):.2f} | {stops} |")
+            print()
+
+
+if __name__ == "__main__":
+    main()
