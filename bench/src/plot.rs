@@ -26,10 +26,10 @@ const POLICY_COLOURS: [RGBColor; 4] = [
     RGBColor(140, 60, 170),
 ];
 
-/// One link, every policy overlaid: max SSE and mean SSE against time, max
-/// SSE against megabytes received, and the largest true error at the probes
-/// against time (log scales, floored at 0.01). The tolerance is drawn as a
-/// grey line.
+/// One link, every policy overlaid: max SSE, mean SSE and the largest true
+/// error at the probes, each against time (left) and against megabytes
+/// received (right), log scales floored at 0.01. The tolerance is drawn as
+/// a grey line.
 pub fn policies_plot(
     path: &Path,
     title: &str,
@@ -37,12 +37,12 @@ pub fn policies_plot(
     tolerance: f64,
 ) -> Result<()> {
     register();
-    let root = BitMapBackend::new(path, (1400, 900)).into_drawing_area();
+    let root = BitMapBackend::new(path, (1400, 1300)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
     let root = root
         .titled(title, ("sans-serif", 24))
         .map_err(|e| anyhow!("{e}"))?;
-    let panels = root.split_evenly((2, 2));
+    let panels = root.split_evenly((3, 2));
     let all = || runs.iter().flat_map(|r| r.1.iter());
     let t_max = all().map(|r| r.t).fold(1e-3, f64::max);
     let mb_max = all()
@@ -55,23 +55,22 @@ pub fn policies_plot(
         .fold(1.0, f64::max)
         * 1.5;
     type Get = fn(&Row) -> Option<(f64, f64)>;
-    let panels_spec: [(&str, &str, f64, f64, Get); 4] = [
-        ("time (s)", "max SSE (px)", t_max, sse_hi, |r| {
-            Some((r.t, r.sse_max))
-        }),
-        ("time (s)", "mean SSE (px)", t_max, sse_hi, |r| {
-            Some((r.t, r.sse_mean))
-        }),
+    let panels_spec: [(&str, &str, f64, f64, Get); 6] = [
+        ("time (s)", "max SSE (px)", t_max, sse_hi, |r| Some((r.t, r.sse_max))),
         ("received (MB)", "max SSE (px)", mb_max, sse_hi, |r| {
             Some((r.bytes_total as f64 / 1e6, r.sse_max))
         }),
-        (
-            "time (s)",
-            "max true error at probes (m)",
-            t_max,
-            err_hi,
-            |r| (r.probes > 0 && r.err_max.is_finite()).then_some((r.t, r.err_max)),
-        ),
+        ("time (s)", "mean SSE (px)", t_max, sse_hi, |r| Some((r.t, r.sse_mean))),
+        ("received (MB)", "mean SSE (px)", mb_max, sse_hi, |r| {
+            Some((r.bytes_total as f64 / 1e6, r.sse_mean))
+        }),
+        ("time (s)", "max true error at probes (m)", t_max, err_hi, |r| {
+            (r.probes > 0 && r.err_max.is_finite()).then_some((r.t, r.err_max))
+        }),
+        ("received (MB)", "max true error at probes (m)", mb_max, err_hi, |r| {
+            (r.probes > 0 && r.err_max.is_finite())
+                .then_some((r.bytes_total as f64 / 1e6, r.err_max))
+        }),
     ];
     for (k, (area, (xl, yl, x_max, y_hi, get))) in panels.iter().zip(panels_spec).enumerate() {
         let y_lo = FLOOR_PX;
@@ -103,7 +102,7 @@ pub fn policies_plot(
                     PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
                 });
         }
-        if k < 3 {
+        if k < 4 {
             chart
                 .draw_series(LineSeries::new(
                     vec![(0.0, tolerance), (x_max, tolerance)],
