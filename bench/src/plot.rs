@@ -56,21 +56,35 @@ pub fn policies_plot(
         * 1.5;
     type Get = fn(&Row) -> Option<(f64, f64)>;
     let panels_spec: [(&str, &str, f64, f64, Get); 6] = [
-        ("time (s)", "max SSE (px)", t_max, sse_hi, |r| Some((r.t, r.sse_max))),
+        ("time (s)", "max SSE (px)", t_max, sse_hi, |r| {
+            Some((r.t, r.sse_max))
+        }),
         ("received (MB)", "max SSE (px)", mb_max, sse_hi, |r| {
             Some((r.bytes_total as f64 / 1e6, r.sse_max))
         }),
-        ("time (s)", "mean SSE (px)", t_max, sse_hi, |r| Some((r.t, r.sse_mean))),
+        ("time (s)", "mean SSE (px)", t_max, sse_hi, |r| {
+            Some((r.t, r.sse_mean))
+        }),
         ("received (MB)", "mean SSE (px)", mb_max, sse_hi, |r| {
             Some((r.bytes_total as f64 / 1e6, r.sse_mean))
         }),
-        ("time (s)", "max true error at probes (m)", t_max, err_hi, |r| {
-            (r.probes > 0 && r.err_max.is_finite()).then_some((r.t, r.err_max))
-        }),
-        ("received (MB)", "max true error at probes (m)", mb_max, err_hi, |r| {
-            (r.probes > 0 && r.err_max.is_finite())
-                .then_some((r.bytes_total as f64 / 1e6, r.err_max))
-        }),
+        (
+            "time (s)",
+            "max true error at probes (m)",
+            t_max,
+            err_hi,
+            |r| (r.probes > 0 && r.err_max.is_finite()).then_some((r.t, r.err_max)),
+        ),
+        (
+            "received (MB)",
+            "max true error at probes (m)",
+            mb_max,
+            err_hi,
+            |r| {
+                (r.probes > 0 && r.err_max.is_finite())
+                    .then_some((r.bytes_total as f64 / 1e6, r.err_max))
+            },
+        ),
     ];
     for (k, (area, (xl, yl, x_max, y_hi, get))) in panels.iter().zip(panels_spec).enumerate() {
         let y_lo = FLOOR_PX;

@@ -36,7 +36,7 @@ pub struct ResidentArgs {
     /// smooth (a few sines), so reaching 10 000 resident blocks over it
     /// takes a tolerance far below a pixel; the work per frame depends on
     /// the number of blocks, not on why they are resident.
-    #[arg(long, default_value_t = 0.005)]
+    #[arg(long, default_value_t = 1e-5)]
     pub max_sse: f64,
     /// Quality factor of the thesis policy (high: many blocks).
     #[arg(long, default_value_t = 1e7)]
@@ -140,7 +140,7 @@ pub fn run(a: ResidentArgs) -> Result<()> {
     );
     if nodes < a.min_blocks {
         bail!(
-            "only {nodes} resident nodes (< {}): raise --qf or --levels",
+            "only {nodes} resident nodes (< {}): lower --max-sse (or raise --qf with --policy thesis) or raise --levels",
             a.min_blocks
         );
     }

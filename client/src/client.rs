@@ -587,7 +587,10 @@ impl Client {
                     Tree::Elevation => (Kind::Elevation, ew),
                     Tree::Colour => (Kind::Colour, cw),
                 };
-                let fp = Footprint::of(b);
+                // The ball's distance (a lower bound of the footprint's): a
+                // request is dropped only when even that says it is not
+                // needed.
+                let fp = Footprint::ball(b);
                 let m = later.measure(kind, &fp, w, n.record.error as f64, 0.0);
                 later.leaf(&m, n.lod).load
             })

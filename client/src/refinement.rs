@@ -160,6 +160,10 @@ pub struct Footprint {
     pub axis: DVec3,
     /// Half-angle of that cone in radians (π: no cone).
     pub half_angle: f64,
+    /// Cosine of `half_angle`.
+    pub cos_half: f64,
+    /// Sine of `half_angle`.
+    pub sin_half: f64,
     /// Largest distance of a bounding point from the planet's centre.
     pub r_top: f64,
 }
@@ -198,7 +202,24 @@ impl Footprint {
             sphere_radius: b.sphere_radius,
             axis,
             half_angle,
+            cos_half: half_angle.cos(),
+            sin_half: half_angle.sin(),
             r_top: if r_top.is_finite() { r_top } else { f64::MAX },
+        }
+    }
+
+    /// The footprint of `b` with its bounding ball only (no cone, no top):
+    /// a looser distance, without reading the bounding points.
+    pub fn ball(b: &BlockBounds) -> Footprint {
+        Footprint {
+            centre: b.centre,
+            radius: b.radius,
+            sphere_radius: b.sphere_radius,
+            axis: DVec3::Z,
+            half_angle: std::f64::consts::PI,
+            cos_half: -1.0,
+            sin_half: 0.0,
+            r_top: f64::MAX,
         }
     }
 
@@ -213,26 +234,38 @@ impl Footprint {
     ///   centre, where `θ` is the angle between the eye and the axis: the
     ///   block seen from the side.
     pub fn distance(&self, eye: DVec3) -> f64 {
+        self.distance_from(eye, eye.length())
+    }
+
+    /// [`Footprint::distance`] with `|eye|` given (the same for every
+    /// block of a frame). The angle between the eye and the nearest
+    /// direction of the cone, `φ = θ − half_angle`, is handled through its
+    /// sine and cosine (no inverse trigonometry), and the distance in forms
+    /// without cancellation.
+    pub fn distance_from(&self, eye: DVec3, e: f64) -> f64 {
         let ball = (eye - self.centre).length() - self.sphere_radius;
-        let e = eye.length();
         let above = e - self.r_top;
         let mut side = f64::NEG_INFINITY;
         if self.half_angle < std::f64::consts::FRAC_PI_2 && e > 0.0 {
-            let cos_t = (self.axis.dot(eye) / e).clamp(-1.0, 1.0);
-            let phi = cos_t.acos() - self.half_angle;
-            if phi > 0.0 {
-                // Nearest point at angle phi from the eye's direction and
-                // at most r_top from the centre: at radius e·cos(phi)
-                // (clamped to [0, r_top]), written without cancellation.
-                let (s, c) = phi.sin_cos();
-                side = if c <= 0.0 {
+            let c = (self.axis.dot(eye) / e).clamp(-1.0, 1.0);
+            let s = ((1.0 - c) * (1.0 + c)).max(0.0).sqrt();
+            // sin φ and cos φ of φ = θ − half_angle.
+            let sin_p = s * self.cos_half - c * self.sin_half;
+            if sin_p > 0.0 {
+                let cos_p = c * self.cos_half + s * self.sin_half;
+                // Nearest point at angle φ from the eye's direction and at
+                // most r_top from the centre: at radius e·cos φ (clamped
+                // to [0, r_top]).
+                side = if cos_p <= 0.0 {
                     e
-                } else if e * c <= self.r_top {
-                    e * s
+                } else if e * cos_p <= self.r_top {
+                    e * sin_p
                 } else {
+                    // |eye − p|² = (e − r)² + 2·e·r·(1 − cos φ), with
+                    // 1 − cos φ = sin²φ / (1 + cos φ).
                     let r = self.r_top;
-                    let h = (0.5 * phi).sin();
-                    ((e - r) * (e - r) + 4.0 * e * r * h * h).sqrt()
+                    let one_minus_cos = sin_p * sin_p / (1.0 + cos_p);
+                    ((e - r) * (e - r) + 2.0 * e * r * one_minus_cos).sqrt()
                 };
             }
         }
@@ -296,6 +329,7 @@ pub struct Refiner {
     height: f64,
     max_area: f64,
     eye: DVec3,
+    eye_len: f64,
     forward: DVec3,
 }
 
@@ -336,6 +370,7 @@ impl Refiner {
                 }
             },
             eye: view.camera.eye,
+            eye_len: view.camera.eye.length(),
             forward,
         }
     }
@@ -375,7 +410,7 @@ impl Refiner {
                 }
             }
             _ => {
-                let dist = fp.distance(self.eye);
+                let dist = fp.distance_from(self.eye, self.eye_len);
                 let d = dist.max(self.near);
                 let (s1, s0) = match kind {
                     Kind::Elevation => (self.sse.of(err1, d), self.sse.of(err0, d)),
@@ -540,6 +575,8 @@ mod tests {
             sphere_radius: radius,
             axis: DVec3::Z,
             half_angle: std::f64::consts::PI,
+            cos_half: -1.0,
+            sin_half: 0.0,
             r_top: f64::MAX,
         }
     }
