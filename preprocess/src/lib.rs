@@ -9,11 +9,14 @@
 //! - [`plan`]: the tree shape, depth by region, graded (thesis §4.3.3).
 //! - [`build`]: the bottom-up, depth-first, linear build (thesis Alg. 5.2).
 //! - [`procedural`]: the procedural planet and [`build_procedural`].
+//! - [`builtin`]: the built-in planet of `planet-view --local` and its named
+//!   places.
 //! - [`db`]: verify, inspect and sample a database (thesis §3.3.2).
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod build;
+pub mod builtin;
 pub mod db;
 pub mod error;
 pub mod geotiff;

@@ -46,6 +46,11 @@ use std::str::FromStr;
 /// Deepest level a procedural tree may have.
 pub const MAX_PROCEDURAL_LEVEL: u8 = 20;
 
+/// Version of the generator, in every procedural database's description:
+/// raise it whenever the same options would give other samples, so that
+/// caches of the built-in planet ([`crate::builtin`]) are rebuilt.
+pub const GENERATOR_VERSION: u32 = 2;
+
 /// A region of a procedural planet built deeper than the base: a circle of
 /// `radius_km` around (`lat`, `lon`) in degrees, down to leaf `level`
 /// (`--detail LAT,LON,RADIUS_KM,LEVEL`).
@@ -798,10 +803,9 @@ impl GridSource for Procedural {
 
     fn description(&self) -> String {
         let mut d = format!(
-            "procedural planet: seed {}, {} levels, {:?}",
+            "procedural planet (generator {GENERATOR_VERSION}): seed {}, {} levels, {:?}",
             self.seed, self.levels, self.datum
         );
-        // Uniform planets keep the description (and bytes) they had.
         for r in &self.detail {
             d.push_str(&format!(", detail {r}"));
         }

@@ -135,6 +135,11 @@ struct WindowArgs {
     /// (Testing) exit after this many frames.
     #[arg(long, value_name = "N")]
     exit_after_frames: Option<u64>,
+    /// (Testing, scripting) append one JSON object per frame to this file:
+    /// the camera (view, mode, lat, lon, alt, heading, pitch, target, range,
+    /// azimuth, tilt), the window size and the streaming counters.
+    #[arg(long, value_name = "PATH")]
+    state: Option<PathBuf>,
 }
 
 #[derive(Debug, Subcommand)]
@@ -322,5 +327,6 @@ fn window(a: WindowArgs) -> Result<()> {
         memory_mb: a.memory,
         screenshot: a.screenshot,
         exit_after_frames: a.exit_after_frames,
+        state: a.state,
     })
 }

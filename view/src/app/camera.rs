@@ -158,6 +158,22 @@ impl Controller {
         }
     }
 
+    /// A view of a named place: flying 6 km above the datum, south of the
+    /// place, heading north and looking 20° down so that the place is at
+    /// the centre of the view.
+    pub fn place(lat: f64, lon: f64) -> Controller {
+        const ALT: f64 = 6000.0;
+        const PITCH: f64 = -20.0;
+        // Ground distance to the point the view's centre ray meets
+        // (flat-ground approximation, about 16.5 km; 1 km of error at most).
+        let ahead = ALT / (-PITCH).to_radians().tan();
+        let dlat = (ahead / 6_371_000.0).to_degrees();
+        Controller {
+            pitch: PITCH,
+            ..Controller::fly((lat - dlat).clamp(-89.9, 89.9), lon, ALT)
+        }
+    }
+
     /// Eye, forward and up vectors.
     pub fn pose(&self, datum: &Datum) -> (DVec3, DVec3, DVec3) {
         match self.mode {

@@ -108,8 +108,27 @@ fn opens(path: &Path) -> Result<(), String> {
         .map_err(|e| e.to_string())
 }
 
-/// The default procedural database in the cache directory, built on first
-/// use (and rebuilt when it is missing or does not open).
+/// Why a cached built-in database is not used: it does not open (another
+/// format version, a torn file) or another generator made it.
+fn stale_reason(path: &Path) -> Option<String> {
+    match planet_core::format::DbFile::open(path) {
+        Err(e) => Some(format!("does not open ({e})")),
+        Ok(db) => {
+            let want = planet_preprocess::builtin::builtin_description();
+            (db.header.description != want).then(|| {
+                format!(
+                    "was made by another generator or with other options ('{}', want '{want}')",
+                    db.header.description
+                )
+            })
+        }
+    }
+}
+
+/// The built-in planet ([`planet_preprocess::builtin`]) in the cache
+/// directory: built on first use with a progress bar, and rebuilt only when
+/// it is missing, does not open, or its description (generator version and
+/// options) differs from this build's.
 pub fn default_database() -> Result<PathBuf, SetupError> {
     let dir = cache_dir()?;
     std::fs::create_dir_all(&dir).map_err(|source| SetupError::Cache {
@@ -118,34 +137,48 @@ pub fn default_database() -> Result<PathBuf, SetupError> {
     })?;
     let path = dir.join("default.planetdb");
     if path.exists() {
-        match opens(&path) {
-            Ok(()) => return Ok(path),
-            Err(e) => eprintln!(
-                "planet-view: cached database {} does not open ({e}); rebuilding",
+        match stale_reason(&path) {
+            None => return Ok(path),
+            Some(why) => eprintln!(
+                "planet-view: cached database {} {why}; rebuilding",
                 path.display()
             ),
         }
     }
     eprintln!(
-        "planet-view: building the default procedural planet into {} (first use) ...",
+        "planet-view: building the built-in planet into {} (first use) ...",
         path.display()
     );
     let t0 = std::time::Instant::now();
-    let tmp = dir.join(format!("default.planetdb.tmp-{}", std::process::id()));
-    let opts = planet_preprocess::default_procedural_options();
-    planet_preprocess::build_procedural(&opts, &tmp).map_err(|source| SetupError::Build {
-        path: tmp.clone(),
-        source,
-    })?;
+    // A name of its own per build: two viewers starting at once do not
+    // write into one file; the rename is atomic.
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.subsec_nanos())
+        .unwrap_or(0);
+    let tmp = dir.join(format!(
+        "default.planetdb.tmp-{}-{nanos}",
+        std::process::id()
+    ));
+    let opts = planet_preprocess::builtin::builtin_options();
+    if let Err(source) = planet_preprocess::build_procedural(&opts, &tmp) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(SetupError::Build {
+            path: tmp.clone(),
+            source,
+        });
+    }
     std::fs::rename(&tmp, &path).map_err(|source| SetupError::Cache {
         path: path.clone(),
         source,
     })?;
     eprintln!("planet-view: built in {:.1} s", t0.elapsed().as_secs_f64());
-    opens(&path).map_err(|reason| SetupError::Database {
-        path: path.clone(),
-        reason,
-    })?;
+    if let Some(reason) = stale_reason(&path) {
+        return Err(SetupError::Database {
+            path: path.clone(),
+            reason,
+        });
+    }
     Ok(path)
 }
 
@@ -271,5 +304,27 @@ impl Endpoint {
                 tokio::time::timeout(Duration::from_secs(3), s.shutdown()).await
             });
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_cached_planet_of_another_generator_is_stale() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("default.planetdb");
+        assert!(stale_reason(&path).is_some_and(|r| r.contains("does not open")));
+        let mut o = planet_preprocess::default_procedural_options();
+        o.levels = 1;
+        planet_preprocess::build_procedural(&o, &path).unwrap();
+        let why = stale_reason(&path).expect("a uniform 1-level planet is not the built-in one");
+        assert!(
+            why.contains("another generator or with other options"),
+            "{why}"
+        );
+        std::fs::write(&path, b"PLANETDB torn").unwrap();
+        assert!(stale_reason(&path).is_some_and(|r| r.contains("does not open")));
     }
 }

@@ -84,9 +84,30 @@ pub fn metres(m: f64) -> String {
     }
 }
 
+/// A latitude and longitude for humans: `46.8500N 121.7600W` (ASCII: the HUD font has no degree sign).
+pub fn lat_lon(lat: f64, lon: f64) -> String {
+    // Longitudes in (-180, 180]: the controller lets them run on.
+    let lon = -((-lon + 180.0).rem_euclid(360.0) - 180.0);
+    format!(
+        "{:.4}{} {:.4}{}",
+        lat.abs(),
+        if lat >= 0.0 { 'N' } else { 'S' },
+        lon.abs(),
+        if lon >= 0.0 { 'E' } else { 'W' }
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lat_lon_wraps_and_names_hemispheres() {
+        assert_eq!(lat_lon(46.85, -121.76), "46.8500N 121.7600W");
+        assert_eq!(lat_lon(-17.5, 540.0), "17.5000S 180.0000E");
+        assert_eq!(lat_lon(0.0, 181.0), "0.0000N 179.0000W");
+        assert_eq!(lat_lon(-90.0, -180.0), "90.0000S 180.0000E");
+    }
 
     #[test]
     fn text_sets_pixels() {

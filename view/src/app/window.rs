@@ -64,6 +64,8 @@ pub struct WindowOptions {
     pub max_sse: f64,
     /// Budget of resident samples in MB.
     pub memory_mb: Option<f64>,
+    /// Append a JSON object per frame here (camera and counters).
+    pub state: Option<PathBuf>,
 }
 
 fn no_display_message(detail: &str) -> String {
@@ -104,9 +106,34 @@ pub fn run(opts: WindowOptions) -> Result<()> {
     let client = connect::connect(&rt, &endpoint.session, cfg)?;
     let header = client.header().clone();
     let datum = header.datum;
-    let start_cam = match opts.goto {
-        Some([lat, lon, alt]) => Controller::fly(lat, lon, alt),
-        None => Controller::orbit(20.0, 10.0, 1.5 * datum.equatorial_radius()),
+    // The views `G` cycles through: orbit, `--goto`, and the built-in
+    // planet's named places; the window starts in the first.
+    let mut views = Vec::new();
+    if let Some([lat, lon, alt]) = opts.goto {
+        views.push(("--goto".to_string(), Controller::fly(lat, lon, alt)));
+    }
+    let (olat, olon) = match opts.source {
+        Source::Local => (
+            planet_preprocess::builtin::PLACES[0].lat,
+            planet_preprocess::builtin::PLACES[0].lon,
+        ),
+        _ => (20.0, 10.0),
+    };
+    views.push((
+        "orbit".to_string(),
+        Controller::orbit(olat, olon, 1.5 * datum.equatorial_radius()),
+    ));
+    if matches!(opts.source, Source::Local) {
+        for p in planet_preprocess::builtin::PLACES {
+            views.push((p.name.to_string(), Controller::place(p.lat, p.lon)));
+        }
+    }
+    let start_cam = views[0].1;
+    let state = match &opts.state {
+        Some(p) => Some(std::io::BufWriter::new(
+            std::fs::File::create(p).with_context(|| format!("--state {}", p.display()))?,
+        )),
+        None => None,
     };
     let mut app = App {
         opts,
@@ -116,6 +143,12 @@ pub fn run(opts: WindowOptions) -> Result<()> {
         gfx: None,
         error: None,
         ctl: start_cam,
+        views,
+        view: 0,
+        state,
+        started: Instant::now(),
+        bytes_window: (Instant::now(), 0),
+        byte_rate: 0.0,
         keys: HashSet::new(),
         dragging: false,
         last_cursor: None,
@@ -561,6 +594,15 @@ struct App {
     gfx: Option<Gfx>,
     error: Option<anyhow::Error>,
     ctl: Controller,
+    /// Named views `G` cycles through, and the one shown last.
+    views: Vec<(String, Controller)>,
+    view: usize,
+    /// The `--state` file.
+    state: Option<std::io::BufWriter<std::fs::File>>,
+    started: Instant,
+    /// Bytes received at the start of the rate window, and the rate (B/s).
+    bytes_window: (Instant, u64),
+    byte_rate: f64,
     keys: HashSet<KeyCode>,
     dragging: bool,
     last_cursor: Option<(f64, f64)>,
@@ -599,12 +641,8 @@ impl App {
                     KeyCode::KeyC => self.crack_fixing = !self.crack_fixing,
                     KeyCode::KeyH => self.show_hud = !self.show_hud,
                     KeyCode::KeyG => {
-                        if let Some([lat, lon, alt]) = self.opts.goto {
-                            self.ctl = Controller::fly(lat, lon, alt);
-                        } else {
-                            self.ctl =
-                                Controller::orbit(20.0, 10.0, 1.5 * datum.equatorial_radius());
-                        }
+                        self.view = (self.view + 1) % self.views.len();
+                        self.ctl = self.views[self.view].1;
                     }
                     _ => {}
                 }
@@ -677,6 +715,14 @@ impl App {
         }
         let s = &out.stats;
         let alt = self.ctl.altitude(&datum);
+        let (eye, _, _) = self.ctl.pose(&datum);
+        let (lat, lon, _) = crate::app::camera::position_to_geodetic(&datum, eye);
+        let received = client.bytes_received();
+        let (b_t0, b_n0) = self.bytes_window;
+        if (now - b_t0).as_secs_f64() >= 1.0 {
+            self.byte_rate = received.saturating_sub(b_n0) as f64 / (now - b_t0).as_secs_f64();
+            self.bytes_window = (now, received);
+        }
         let mode = match self.ctl.mode {
             Mode::Fly => "fly",
             Mode::Orbit => "orbit",
@@ -684,15 +730,17 @@ impl App {
         let tris = gfx.renderer.stats.triangles;
         let lines = vec![
             format!(
-                "{:5.1} fps  {} tris  {} blocks  QF {:.3e}",
+                "{:5.1} fps  {} tris  {} blocks  SSE max {:.1} px (tol {:.2})",
                 self.fps,
                 tris,
                 blocks.len(),
-                s.quality_factor
+                s.max_screen_error,
+                client.client.tolerance()
             ),
             format!(
-                "{} received  {} in flight  {} nodes  {}",
-                hud::bytes(client.bytes_received()),
+                "{} received  {}/s  {} in flight  {} nodes  {}",
+                hud::bytes(received),
+                hud::bytes(self.byte_rate as u64),
                 s.in_flight,
                 s.nodes,
                 if client.is_connected() {
@@ -702,27 +750,60 @@ impl App {
                 }
             ),
             format!(
-                "alt {}  {}  cracks {}  SSE max {:.1} px  mesh jobs {}",
+                "{}  alt {}  {}  view {}",
+                hud::lat_lon(lat, lon),
                 hud::metres(alt),
                 mode,
+                self.views[self.view].0,
+            ),
+            format!(
+                "cracks {}  mesh jobs {}",
                 if self.crack_fixing { "fixed" } else { "OFF" },
-                s.max_screen_error,
                 self.scene.stats.pending
             ),
             "WASD/arrows move  drag look  wheel alt  Q/E down/up".to_string(),
-            "Tab orbit/fly  G goto  C cracks  H hud  Esc quit".to_string(),
+            "Tab orbit/fly  G next place  C cracks  H hud  Esc quit".to_string(),
         ];
         if (now - self.last_title).as_secs_f64() >= 0.5 || self.frames == 1 {
             self.last_title = now;
             gfx.window.set_title(&format!(
-                "planet-view — {:.1} fps, {} tris, {} received, {} in flight, QF {:.2e}, alt {}",
+                "planet-view — {:.1} fps, {} tris, {} received, {} in flight, SSE max {:.1} px, alt {}",
                 self.fps,
                 tris,
                 hud::bytes(client.bytes_received()),
                 s.in_flight,
-                s.quality_factor,
+                s.max_screen_error,
                 hud::metres(alt)
             ));
+        }
+        if let Some(out_state) = self.state.as_mut() {
+            use std::io::Write;
+            let c = &self.ctl;
+            let line = serde_json::json!({
+                "frame": self.frames,
+                "time_s": (now - self.started).as_secs_f64(),
+                "view": self.views[self.view].0,
+                "mode": mode,
+                "lat": lat,
+                "lon": lon,
+                "alt": alt,
+                "heading": c.heading,
+                "pitch": c.pitch,
+                "target_lat": c.target_lat,
+                "target_lon": c.target_lon,
+                "range": c.range,
+                "azimuth": c.azimuth,
+                "tilt": c.tilt,
+                "width": w,
+                "height": h,
+                "hud": self.show_hud,
+                "bytes_received": received,
+                "in_flight": s.in_flight,
+                "max_sse_px": s.max_screen_error,
+            });
+            writeln!(out_state, "{line}")
+                .and_then(|()| out_state.flush())
+                .context("--state")?;
         }
         let scale = if w >= 1600 { 2 } else { 1 };
         let panel = self.show_hud.then(|| hud::rasterise(&lines, scale));
