@@ -130,7 +130,9 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                     },
                 );
                 if let Some(p) = refiner.merge(&m) {
-                    if tree.can_merge(Tree::Elevation, &id).is_ok() {
+                    if tree.can_merge(Tree::Elevation, &id).is_ok()
+                        && !colour_holds_split(tree, refiner, &id, &Footprint::of(b))
+                    {
                         cx.out.ops.push(TreeOp {
                             kind: OpKind::Merge,
                             tree: Tree::Elevation,
@@ -204,13 +206,9 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 if d.load {
                     let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
                     cx.load(Tree::Colour, id, p, false);
-                } else if d.split && tree.can_split(Tree::Colour, &id).is_ok() {
-                    cx.out.ops.push(TreeOp {
-                        kind: OpKind::Split,
-                        tree: Tree::Colour,
-                        block: id,
-                        importance: refiner.split_priority(&m, id.level, b.centre),
-                    });
+                } else if d.split && n.can_split_data().is_ok() {
+                    let p = refiner.split_priority(&m, id.level, b.centre);
+                    cx.split_colour(id, p);
                 }
             }
         }
@@ -295,6 +293,35 @@ impl Ctx<'_> {
             importance,
             forced,
         });
+    }
+
+    /// Split colour leaf `id` (LOD 0 loaded, with children); when its
+    /// elevation block is not split (the binding of §4.4.1), refine the
+    /// elevation block instead, so that colour can refine by texel size
+    /// where the geometry alone would not: load its LOD 0, or split it.
+    fn split_colour(&mut self, id: BlockId, importance: f64) {
+        match self.tree.can_split(Tree::Colour, &id) {
+            Ok(()) => self.out.ops.push(TreeOp {
+                kind: OpKind::Split,
+                tree: Tree::Colour,
+                block: id,
+                importance,
+            }),
+            Err(Blocked::Binding) => {
+                let Some(e) = self.tree.elevation().get(&id) else {
+                    return;
+                };
+                if e.split {
+                    return;
+                }
+                match e.can_split_data() {
+                    Ok(()) => self.trigger_split(Tree::Elevation, id, importance, 0),
+                    Err(Blocked::NotLoaded) => self.load(Tree::Elevation, id, importance, false),
+                    Err(_) => {}
+                }
+            }
+            Err(_) => {}
+        }
     }
 
     /// Trigger a split, or force the neighbours that block it (§4.3.3).
@@ -1232,7 +1259,14 @@ impl Selector {
                     m.sse_lod = NOT_DRAWN;
                 }
                 if let Some(p) = refiner.merge(&m.m) {
-                    if tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok() {
+                    if tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok()
+                        && !colour_holds_split(
+                            tree,
+                            refiner,
+                            &self.ids[i],
+                            &self.cold[h.slot as usize].fp,
+                        )
+                    {
                         cx.out.ops.push(TreeOp {
                             kind: OpKind::Merge,
                             tree: Tree::Elevation,
@@ -1346,13 +1380,8 @@ impl Selector {
                         ),
                         forced: false,
                     });
-                } else if d.split && c.splittable && tree.can_split(Tree::Colour, &c.id).is_ok() {
-                    cx.out.ops.push(TreeOp {
-                        kind: OpKind::Split,
-                        tree: Tree::Colour,
-                        block: c.id,
-                        importance: refiner.split_priority(&mm, c.id.level, h.centre),
-                    });
+                } else if d.split && c.splittable {
+                    cx.split_colour(c.id, refiner.split_priority(&mm, c.id.level, h.centre));
                 }
             }
         }
@@ -1471,6 +1500,28 @@ fn exact_visible(view: &View, c: &mut Cold) -> bool {
 }
 
 /// Largest error of the children's records (the error at LOD 0), 0 without.
+/// Whether the colour leaf with the id of a split elevation block wants its
+/// children (its LOD 0 is loaded, has children, and its texels are coarser
+/// than the tolerance): the elevation block then stays split, since colour
+/// can split only under a split elevation block (§4.4.1's binding).
+fn colour_holds_split(tree: &PartialTree, refiner: &Refiner, id: &BlockId, fp: &Footprint) -> bool {
+    let Some(ct) = tree.colour() else {
+        return false;
+    };
+    let Some(c) = ct.get(id) else { return false };
+    if c.split || c.can_split_data().is_err() {
+        return false;
+    }
+    let m = refiner.measure(
+        Kind::Colour,
+        fp,
+        ct.width as f64,
+        c.record.error as f64,
+        child_error(c),
+    );
+    refiner.leaf(&m, c.lod).split
+}
+
 fn child_error(n: &Node) -> f64 {
     n.child_refs.as_ref().map_or(0.0, |c| {
         c.iter().map(|r| r.error as f64).fold(0.0, f64::max)
