@@ -31,8 +31,13 @@ use std::time::{Duration, Instant};
 
 #[derive(Args, Debug, Clone)]
 pub struct FlightArgs {
-    /// Database file (built there first with --procedural if missing).
-    #[arg(long)]
+    /// Database file (built there first with --procedural if missing);
+    /// repeat to fly the same links and policies over several databases
+    /// (e.g. one codec against another) in one invocation.
+    #[arg(long = "db", required = true)]
+    pub dbs: Vec<PathBuf>,
+    /// The database of the run in progress (one of `dbs`).
+    #[arg(skip)]
     pub db: PathBuf,
     /// Build a procedural database at --db if it does not exist.
     #[arg(long)]
@@ -138,6 +143,8 @@ pub struct Row {
 #[derive(Debug, Clone)]
 pub struct Summary {
     pub label: String,
+    /// The database's file stem.
+    pub db: String,
     pub policy: Policy,
     /// ∫ mean SSE dt and ∫ max SSE dt over the flight (px·s).
     pub error_integral: f64,
@@ -203,6 +210,7 @@ fn link_name(spec: &str) -> String {
 /// One line of `summary.json`.
 #[derive(Debug, Serialize)]
 struct JsonSummary<'a> {
+    db: &'a str,
     link: &'a str,
     policy: &'a str,
     trajectory: &'a str,
@@ -227,65 +235,88 @@ struct JsonSummary<'a> {
     frames_late: u64,
 }
 
-pub fn run(a: FlightArgs) -> Result<()> {
-    if !a.db.exists() {
-        if !a.procedural {
-            bail!(
-                "{} does not exist (use --procedural to build one)",
+pub fn run(args: FlightArgs) -> Result<()> {
+    let traj = match Trajectory::builtin(&args.trajectory) {
+        Some(t) => t,
+        None => Trajectory::load(Path::new(&args.trajectory))
+            .with_context(|| format!("trajectory {}", args.trajectory))?,
+    };
+    std::fs::create_dir_all(&args.out)?;
+    let several = args.dbs.len() > 1;
+    let mut summaries = Vec::new();
+    let mut needed_per_db = Vec::new();
+    // Per link: every (database, policy) run, for one overlaid plot.
+    let mut per_link: Vec<Vec<(String, Vec<Row>)>> = vec![Vec::new(); args.links.len()];
+    for db in &args.dbs {
+        let a = FlightArgs {
+            db: db.clone(),
+            ..args.clone()
+        };
+        if !a.db.exists() {
+            if !a.procedural {
+                bail!(
+                    "{} does not exist (use --procedural to build one)",
+                    a.db.display()
+                );
+            }
+            eprintln!(
+                "building a procedural database ({} levels{}) at {}",
+                a.levels,
+                if a.detail.is_empty() {
+                    String::new()
+                } else {
+                    format!(", {} detail regions", a.detail.len())
+                },
                 a.db.display()
             );
+            planet_tests::build_procedural_db_with_detail(&a.db, a.levels, 1, &a.detail)?;
         }
-        eprintln!(
-            "building a procedural database ({} levels{}) at {}",
-            a.levels,
-            if a.detail.is_empty() {
-                String::new()
-            } else {
-                format!(", {} detail regions", a.detail.len())
-            },
-            a.db.display()
-        );
-        planet_tests::build_procedural_db_with_detail(&a.db, a.levels, 1, &a.detail)?;
+        let needed = if a.no_needed {
+            None
+        } else {
+            let t0 = Instant::now();
+            let n = needed_bytes(&a, &traj)?;
+            eprintln!(
+                "{}: bytes needed for ≤ {} px along the path (instant delivery): {:.2} MB ({:.1} s)",
+                a.db.display(),
+                a.max_sse,
+                n as f64 / 1e6,
+                t0.elapsed().as_secs_f64()
+            );
+            Some(n)
+        };
+        for (k, spec) in a.links.iter().enumerate() {
+            for &policy in &a.policies {
+                let (s, rows) = run_link(&a, &traj, spec, policy, needed)?;
+                print_summary(std::slice::from_ref(&s));
+                let name = if several {
+                    format!("{policy} @ {}", s.db)
+                } else {
+                    policy.name().to_string()
+                };
+                per_link[k].push((name, rows));
+                needed_per_db.push(needed);
+                summaries.push(s);
+            }
+        }
     }
-    let traj = match Trajectory::builtin(&a.trajectory) {
-        Some(t) => t,
-        None => Trajectory::load(Path::new(&a.trajectory))
-            .with_context(|| format!("trajectory {}", a.trajectory))?,
-    };
-    std::fs::create_dir_all(&a.out)?;
-    let needed = if a.no_needed {
-        None
-    } else {
-        let t0 = Instant::now();
-        let n = needed_bytes(&a, &traj)?;
-        eprintln!(
-            "bytes needed for ≤ {} px along the path (instant delivery): {:.2} MB ({:.1} s)",
-            a.max_sse,
-            n as f64 / 1e6,
-            t0.elapsed().as_secs_f64()
-        );
-        Some(n)
-    };
-    let mut summaries = Vec::new();
-    let mut json = Vec::new();
-    for spec in &a.links {
-        let mut runs: Vec<(Policy, Vec<Row>)> = Vec::new();
-        for &policy in &a.policies {
-            let (s, rows) = run_link(&a, &traj, spec, policy, needed)?;
-            print_summary(std::slice::from_ref(&s));
-            runs.push((policy, rows));
-            summaries.push(s);
-        }
-        let label = a.label.clone().unwrap_or_else(|| spec.to_string());
+    for (spec, runs) in args.links.iter().zip(&per_link) {
+        let label = args.label.clone().unwrap_or_else(|| spec.to_string());
         plot::policies_plot(
-            &a.out.join(format!("flight-{}.png", link_name(&label))),
-            &format!("{} — {label} — max SSE {} px", a.trajectory, a.max_sse),
-            &runs,
-            a.max_sse,
+            &args.out.join(format!("flight-{}.png", link_name(&label))),
+            &format!(
+                "{} — {label} — max SSE {} px",
+                args.trajectory, args.max_sse
+            ),
+            runs,
+            args.max_sse,
         )?;
     }
-    for s in &summaries {
+    let a = &args;
+    let mut json = Vec::new();
+    for (s, &needed) in summaries.iter().zip(&needed_per_db) {
         json.push(JsonSummary {
+            db: &s.db,
             link: &s.label,
             policy: s.policy.name(),
             trajectory: &a.trajectory,
@@ -540,7 +571,16 @@ fn run_link(
     drop(server);
 
     let name = link_name(&label);
-    write_csv(&a.out.join(format!("flight-{name}-{policy}.csv")), &rows)?;
+    let db_name =
+        a.db.file_stem()
+            .map(|x| x.to_string_lossy().to_string())
+            .unwrap_or_default();
+    let csv = if a.dbs.len() > 1 {
+        format!("flight-{name}-{policy}-{}.csv", link_name(&db_name))
+    } else {
+        format!("flight-{name}-{policy}.csv")
+    };
+    write_csv(&a.out.join(csv), &rows)?;
 
     let segs = static_segments(traj);
     let tol = a.max_sse;
@@ -564,6 +604,7 @@ fn run_link(
     Ok((
         Summary {
             label,
+            db: db_name,
             policy,
             error_integral,
             max_sse_integral,
@@ -650,11 +691,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| link | policy | ∫ mean SSE dt | ∫ max SSE dt | ∫ per-pixel SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | policy | ∫ mean SSE dt | ∫ max SSE dt | ∫ per-pixel SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
         let stops: Vec<String> = s
@@ -667,7 +708,8 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {}{} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
             s.policy,

@@ -33,7 +33,7 @@ const POLICY_COLOURS: [RGBColor; 4] = [
 pub fn policies_plot(
     path: &Path,
     title: &str,
-    runs: &[(planet_client::Policy, Vec<Row>)],
+    runs: &[(String, Vec<Row>)],
     tolerance: f64,
 ) -> Result<()> {
     register();
@@ -101,7 +101,7 @@ pub fn policies_plot(
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| anyhow!("{e}"))?;
-        for (i, (policy, rows)) in runs.iter().enumerate() {
+        for (i, (name, rows)) in runs.iter().enumerate() {
             let c = POLICY_COLOURS[i % POLICY_COLOURS.len()];
             let pts: Vec<(f64, f64)> = rows
                 .iter()
@@ -111,7 +111,7 @@ pub fn policies_plot(
             chart
                 .draw_series(LineSeries::new(pts, c.stroke_width(2)))
                 .map_err(|e| anyhow!("{e}"))?
-                .label(policy.name())
+                .label(name.as_str())
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
                 });

@@ -616,11 +616,21 @@ impl Client {
         self.pending_ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
         // Stats.
         let draw = sel.draw;
+        // A record's samples are drawn when its block is drawn at LOD 0, or
+        // one of its children at LOD 1: a split block's LOD 0 is its
+        // children's LOD 1 (thesis §3.3.2), so a record that arrived and let
+        // the block split (a neighbour's constraint, or colour that refines
+        // below the geometry) is drawn through its children.
+        let is_child = |c: &BlockId, b: &BlockId| c.parent().is_some_and(|p| p == *b);
         let drawn_at_lod0 = |t: Tree, b: &BlockId| match t {
-            Tree::Elevation => draw.iter().any(|d| d.block == *b && d.lod == 0),
-            Tree::Colour => draw
+            Tree::Elevation => draw
                 .iter()
-                .any(|d| d.colour.is_some_and(|c| c.block == *b && c.lod == 0)),
+                .any(|d| (d.block == *b && d.lod == 0) || (d.lod == 1 && is_child(&d.block, b))),
+            Tree::Colour => draw.iter().any(|d| {
+                d.colour.is_some_and(|c| {
+                    (c.block == *b && c.lod == 0) || (c.lod == 1 && is_child(&c.block, b))
+                })
+            }),
         };
         // Records applied earlier and drawn now.
         if !self.not_drawn.is_empty() {
@@ -631,10 +641,11 @@ impl Client {
                     later += *bytes;
                     return false;
                 }
-                // Merged away or split: it can no longer be drawn.
+                // Merged away: it can no longer be drawn (split, it may be
+                // drawn through its children).
                 tree.tree(*t)
                     .and_then(|x| x.get(b))
-                    .is_some_and(|n| !n.split && n.lod == 0)
+                    .is_some_and(|n| n.lod == 0)
             });
             self.totals.bytes_drawn_later += later;
         }
