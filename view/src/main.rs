@@ -180,6 +180,11 @@ struct RenderArgs {
     /// Reference resolution: samples at most this many pixels apart.
     #[arg(long, default_value_t = 1.0)]
     reference_px: f64,
+    /// Render the reference from this database instead of the streamed one
+    /// (e.g. the lossless build of a database streamed with a lossy codec:
+    /// the image error then includes the codec's). Implies --reference.
+    #[arg(long, value_name = "PATH")]
+    reference_db: Option<PathBuf>,
     /// Do not pace frames to real time (the stream then gets less time).
     #[arg(long)]
     no_pace: bool,
@@ -275,7 +280,8 @@ fn render(a: RenderArgs) -> Result<()> {
         width: a.width,
         height: a.height,
         every: a.every,
-        reference: a.reference,
+        reference: a.reference || a.reference_db.is_some(),
+        reference_db: a.reference_db,
         reference_px: a.reference_px,
         pace: !a.no_pace,
         duration: a.duration,

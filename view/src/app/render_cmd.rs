@@ -36,6 +36,8 @@ pub struct RenderOptions {
     pub every: usize,
     /// Compute the image error against the complete database.
     pub reference: bool,
+    /// Render the reference from this database (default: the streamed one).
+    pub reference_db: Option<PathBuf>,
     /// Reference sample spacing in pixels.
     pub reference_px: f64,
     /// Pace frames to real time (the network runs in real time).
@@ -100,18 +102,20 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
     eprintln!("planet-view render: adapter {}", renderer.adapter_name);
     let mut reference = if opts.reference {
         let qf = reference_qf(opts.reference_px, FOV_Y, opts.height);
-        Some(match &endpoint.db_path {
-            Some(p) => {
-                let db = planet_core::format::DbFile::open(p)
-                    .with_context(|| format!("opening {} for the reference", p.display()))?;
-                Reference::from_file(db, qf)?
-            }
-            None => Reference::from_stream(connect::connect(
-                &rt,
-                &endpoint.direct,
-                reference_config(qf, 2),
-            )?),
-        })
+        Some(
+            match opts.reference_db.as_ref().or(endpoint.db_path.as_ref()) {
+                Some(p) => {
+                    let db = planet_core::format::DbFile::open(p)
+                        .with_context(|| format!("opening {} for the reference", p.display()))?;
+                    Reference::from_file(db, qf)?
+                }
+                None => Reference::from_stream(connect::connect(
+                    &rt,
+                    &endpoint.direct,
+                    reference_config(qf, 2),
+                )?),
+            },
+        )
     } else {
         None
     };
