@@ -26,6 +26,7 @@ use planet_client::tree::{PartialTree, Samples};
 use planet_client::DrawBlock as ClientBlock;
 use planet_core::format::Header;
 use planet_core::{BlockId, Datum, Edge};
+use planet_view::mesh::Border;
 use planet_view::{BlockMesh, BlockTexture, ColourRef, DrawBlock};
 use std::collections::{HashMap, HashSet};
 use std::sync::mpsc::{channel, Receiver, Sender};
@@ -43,6 +44,8 @@ pub enum BuildMode {
 struct MeshEntry {
     /// LOD of the grid the mesh was built from (1: only even samples valid).
     lod: u8,
+    /// Which neighbours' samples its edge normals used ([`Border::key`]).
+    border: [u8; 4],
     mesh: Arc<BlockMesh>,
     last_used: u64,
 }
@@ -78,15 +81,89 @@ pub struct SceneBuilder {
     w: usize,
     colour_w: usize,
     meshes: HashMap<BlockId, MeshEntry>,
-    pending: HashSet<(BlockId, u8)>,
-    done_tx: Sender<(BlockId, u8, BlockMesh)>,
-    done_rx: Receiver<(BlockId, u8, BlockMesh)>,
+    pending: HashSet<(BlockId, u8, [u8; 4])>,
+    done_tx: Sender<Built>,
+    done_rx: Receiver<Built>,
     textures: HashMap<BlockId, TexEntry>,
     frame: u64,
     /// Drop cached meshes and textures unused for this many frames.
     pub keep_frames: u64,
     /// Counters of the last frame.
     pub stats: SceneStats,
+}
+
+/// A finished mesh build: block, grid LOD, border key, mesh.
+type Built = (BlockId, u8, [u8; 4], BlockMesh);
+
+/// What a block's mesh is built from: its grid and its same-level
+/// neighbours' grids (for seamless edge normals, [`Border`]).
+struct MeshInput {
+    id: BlockId,
+    lod: u8,
+    grid: Vec<i16>,
+    /// Per edge: the neighbour, its edge facing us, its grid, whether at LOD 0.
+    neighbours: [Option<NeighbourGrid>; 4],
+}
+
+/// A same-level neighbour, its edge facing the block, its grid, and whether
+/// the grid is at LOD 0.
+type NeighbourGrid = (BlockId, Edge, Vec<i16>, bool);
+
+impl MeshInput {
+    fn key(&self) -> [u8; 4] {
+        let mut k = [0u8; 4];
+        for (e, n) in self.neighbours.iter().enumerate() {
+            k[e] = match n {
+                Some((.., true)) => 2,
+                Some(_) => 1,
+                None => 0,
+            };
+        }
+        k
+    }
+}
+
+/// The border key of `id`'s neighbours now, without copying grids.
+fn border_key(tree: &PartialTree, id: &BlockId) -> [u8; 4] {
+    let et = tree.elevation();
+    let mut k = [0u8; 4];
+    for (e, edge) in Edge::ALL.iter().enumerate() {
+        let (nb, _) = id.neighbour(*edge);
+        if let Some(n) = et.get(&nb) {
+            if matches!(n.samples, Some(Samples::Elevation(_))) {
+                k[e] = if n.lod == 0 { 2 } else { 1 };
+            }
+        }
+    }
+    k
+}
+
+fn mesh_input(tree: &PartialTree, id: BlockId, lod: u8, grid: &[i16]) -> MeshInput {
+    let et = tree.elevation();
+    let neighbours = Edge::ALL.map(|edge| {
+        let (nb, back) = id.neighbour(edge);
+        let n = et.get(&nb)?;
+        match n.samples.as_ref() {
+            Some(Samples::Elevation(g)) => Some((nb, back, g.clone(), n.lod == 0)),
+            _ => None,
+        }
+    });
+    MeshInput {
+        id,
+        lod,
+        grid: grid.to_vec(),
+        neighbours,
+    }
+}
+
+fn build_mesh(datum: &Datum, w: usize, scale: f64, offset: f64, m: &MeshInput) -> BlockMesh {
+    let mut border = Border::default();
+    for (edge, n) in Edge::ALL.iter().zip(&m.neighbours) {
+        if let Some((nb, back, g, lod0)) = n {
+            border.set_from_neighbour(datum, *edge, *nb, *back, w, g, *lod0, scale, offset);
+        }
+    }
+    BlockMesh::build_with_border(datum, m.id, w, &m.grid, scale, offset, &border)
 }
 
 fn definition(level: u8, lod: u8) -> i32 {
@@ -143,12 +220,13 @@ impl SceneBuilder {
         let frame = self.frame;
         let mut stats = SceneStats::default();
         // 1. Finished background builds.
-        while let Ok((id, lod, mesh)) = self.done_rx.try_recv() {
-            self.pending.remove(&(id, lod));
+        while let Ok((id, lod, border, mesh)) = self.done_rx.try_recv() {
+            self.pending.remove(&(id, lod, border));
             self.meshes.insert(
                 id,
                 MeshEntry {
                     lod,
+                    border,
                     mesh: Arc::new(mesh),
                     last_used: frame,
                 },
@@ -156,7 +234,7 @@ impl SceneBuilder {
         }
         let et = tree.elevation();
         // 2. Per client block: its mesh, an older one, or a substitute.
-        let mut inline: Vec<(BlockId, u8, Vec<i16>)> = Vec::new();
+        let mut inline: Vec<MeshInput> = Vec::new();
         let mut wanted: Vec<&ClientBlock> = Vec::with_capacity(draw.len());
         for d in draw {
             let Some(node) = et.get(&d.block) else {
@@ -165,22 +243,23 @@ impl SceneBuilder {
             let Some(Samples::Elevation(grid)) = node.samples.as_ref() else {
                 continue;
             };
+            let key = border_key(tree, &d.block);
             match self.meshes.get(&d.block) {
-                Some(e) if e.lod == node.lod => {}
+                Some(e) if e.lod == node.lod && e.border == key => {}
                 other => {
                     let have_other = other.is_some();
                     let ancestor = !have_other && self.ancestor_with_mesh(d.block).is_some();
                     if mode == BuildMode::Sync || (!have_other && !ancestor) {
-                        inline.push((d.block, node.lod, grid.clone()));
-                    } else if self.pending.insert((d.block, node.lod)) {
+                        inline.push(mesh_input(tree, d.block, node.lod, grid));
+                    } else if self.pending.insert((d.block, node.lod, key)) {
                         stats.queued += 1;
-                        let (id, lod, grid) = (d.block, node.lod, grid.clone());
+                        let input = mesh_input(tree, d.block, node.lod, grid);
                         let tx = self.done_tx.clone();
                         let (datum, w, scale, offset) =
                             (self.datum, self.w, self.scale, self.offset);
                         rayon::spawn(move || {
-                            let m = BlockMesh::build(&datum, id, w, &grid, scale, offset);
-                            let _ = tx.send((id, lod, m));
+                            let m = build_mesh(&datum, w, scale, offset, &input);
+                            let _ = tx.send((input.id, input.lod, input.key(), m));
                         });
                     }
                 }
@@ -191,22 +270,24 @@ impl SceneBuilder {
             use rayon::prelude::*;
             stats.built_inline = inline.len();
             let (datum, w, scale, offset) = (self.datum, self.w, self.scale, self.offset);
-            let built: Vec<(BlockId, u8, BlockMesh)> = inline
+            let built: Vec<Built> = inline
                 .par_iter()
-                .map(|(id, lod, g)| {
+                .map(|m| {
                     (
-                        *id,
-                        *lod,
-                        BlockMesh::build(&datum, *id, w, g, scale, offset),
+                        m.id,
+                        m.lod,
+                        m.key(),
+                        build_mesh(&datum, w, scale, offset, m),
                     )
                 })
                 .collect();
-            for (id, lod, m) in built {
-                self.pending.remove(&(id, lod));
+            for (id, lod, border, m) in built {
+                self.pending.remove(&(id, lod, border));
                 self.meshes.insert(
                     id,
                     MeshEntry {
                         lod,
+                        border,
                         mesh: Arc::new(m),
                         last_used: frame,
                     },
