@@ -49,7 +49,7 @@ pub const MAX_PROCEDURAL_LEVEL: u8 = 20;
 /// Version of the generator, in every procedural database's description:
 /// raise it whenever the same options would give other samples, so that
 /// caches of the built-in planet ([`crate::builtin`]) are rebuilt.
-pub const GENERATOR_VERSION: u32 = 2;
+pub const GENERATOR_VERSION: u32 = 3;
 
 /// A region of a procedural planet built deeper than the base: a circle of
 /// `radius_km` around (`lat`, `lon`) in degrees, down to leaf `level`
@@ -362,10 +362,11 @@ impl Procedural {
     /// Where the rough octaves apply: 1 within half the radius of a region
     /// deeper than the base, fading smoothly to exactly 0 at its radius
     /// (rough detail outside the deep leaves would only alias). A function
-    /// of the direction, evaluated on the base lattice.
-    fn rough_mask(&self, p: [f64; 3]) -> f64 {
-        self.rough_caps
-            .iter()
+    /// of the direction alone, evaluated per sample (generator 3; on the
+    /// base lattice before, whose points are 8 base samples apart, about
+    /// 39 km at 4 levels: regions narrower than that had no rough detail).
+    fn rough_mask(&self, caps: &[Cap], p: [f64; 3]) -> f64 {
+        caps.iter()
             .map(|c| 1.0 - smoothstep(0.5 * c.radius, c.radius, angle_between(p, c.centre)))
             .fold(0.0, f64::max)
     }
@@ -409,9 +410,7 @@ impl Procedural {
         for v in &vs {
             for u in &us {
                 let p = normalize(face.cube_point(*u, *v));
-                let mut l = self.low(p);
-                l[2] *= self.rough_mask(p);
-                out.push(l);
+                out.push(self.low(p));
             }
         }
         out
@@ -460,7 +459,14 @@ impl Procedural {
         // The rough octaves are skipped where the rough gain is exactly 0 at
         // every lattice point the leaf interpolates (then every sample's
         // rough term is ±0 and adding it changes nothing).
-        let mut rough_octs = if lat.iter().any(|l| l[2] != 0.0) {
+        // Likewise outside every rough region (the mask is then exactly 0).
+        let caps: Vec<Cap> = self
+            .rough_caps
+            .iter()
+            .filter(|c| crate::plan::block_meets_cap(b, c))
+            .copied()
+            .collect();
+        let mut rough_octs = if !caps.is_empty() && lat.iter().any(|l| l[2] != 0.0) {
             self.rough_octaves()
         } else {
             Vec::new()
@@ -505,7 +511,8 @@ impl Procedural {
                 let g = gain[li] + (gain[li1] - gain[li]) * fi;
                 let v = h0 + g * hi[i] as f64;
                 *o = round_to_i16(if rough_on {
-                    let gr = rgain[li] + (rgain[li1] - rgain[li]) * fi;
+                    let mask = self.rough_mask(&caps, [px[i], py[i], pz[i]]);
+                    let gr = (rgain[li] + (rgain[li1] - rgain[li]) * fi) * mask;
                     v + gr * rough[i] as f64
                 } else {
                     v
@@ -1293,6 +1300,31 @@ mod tests {
         );
     }
 
+    /// A region narrower than the base lattice's spacing (8 base samples,
+    /// about 39 km at 4 levels) is rough too: the mask is per sample
+    /// (generator 2 evaluated it on the lattice, and the built-in planet's
+    /// 12 km places came out as smooth ramps).
+    #[test]
+    fn narrow_regions_on_a_shallow_base_are_rough() {
+        let g = deep(4, "-17.5,-107,12,14");
+        let p = direction_from_lat_lon((-17.5f64).to_radians(), (-107f64).to_radians());
+        let fc = planet_core::cube::FaceCoord::from_direction(p);
+        let n = 1u32 << 14;
+        let cell = |v: f64| ((v * n as f64) as u32).min(n - 1);
+        let b = BlockId::new(fc.face, 14, cell(fc.s), cell(fc.t)).expect("block");
+        let leaf = g.leaf_elevation(b);
+        assert!(crate::build::elevation_lod_error(&leaf, EW) >= 3.0);
+        let mut smooth = g.clone();
+        smooth.rough_caps.clear();
+        let diff = leaf
+            .iter()
+            .zip(smooth.leaf_elevation(b))
+            .map(|(a, b)| (*a as i32 - b as i32).abs())
+            .max()
+            .unwrap_or(0);
+        assert!(diff >= 20, "rough octaves add at most {diff} m");
+    }
+
     /// The rough octaves make a deep planet's fine levels rough on high
     /// ground (slopes of tenths at ~10 m) while the uniform planet of the same
     /// seed is smooth there and lowlands stay smooth.
@@ -1327,8 +1359,11 @@ mod tests {
         let ue = u.leaf_elevation(ub);
         assert!(mean_slope(&ue, 150.0) < 0.05);
         // Outside the region: no rough octaves.
-        assert_eq!(g.rough_mask(direction_from_lat_lon(0.5, 1.0)), 0.0);
-        assert_eq!(g.rough_mask(p), 1.0);
+        assert_eq!(
+            g.rough_mask(&g.rough_caps, direction_from_lat_lon(0.5, 1.0)),
+            0.0
+        );
+        assert_eq!(g.rough_mask(&g.rough_caps, p), 1.0);
         // Deep ocean: no rough gain at all.
         let mut oceans = 0;
         for lat in (-60..=60).step_by(10) {
