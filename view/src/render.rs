@@ -197,6 +197,8 @@ pub struct RenderSettings {
     pub ambient: f32,
     /// Background colour (linear RGBA).
     pub clear: [f64; 4],
+    /// Aerial perspective ([`Atmosphere`]); `None`: none.
+    pub atmosphere: Option<Atmosphere>,
     /// Evict cached GPU meshes and textures not drawn for this many frames.
     pub cache_frames: u64,
 }
@@ -212,9 +214,35 @@ impl RenderSettings {
             sun_dir: [0.6, 0.5, 0.62],
             ambient: 0.25,
             clear: [0.0, 0.0, 0.02, 1.0],
+            atmosphere: Some(Atmosphere::EARTH),
             cache_frames: 8,
         }
     }
+}
+
+/// Aerial perspective: terrain fades towards a sunlit sky colour with the
+/// air between it and the eye. The optical depth is that of an exponential
+/// atmosphere near the seen point, `ρ(h)·L / V` with `ρ(h) = exp(−h/H)`
+/// and the path `L` the distance to the point, at most the air column
+/// seen at the point's zenith angle (`H / cos z`): so the ground is hazy
+/// near the horizon from anywhere, barely from orbit straight down, and
+/// the planet's limb glows. Computed in the fragment shader (shader.wgsl),
+/// finite at every distance and inside the planet (heights below 0 count
+/// as 0, a zero distance as no haze).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Atmosphere {
+    /// Scale height `H` in metres.
+    pub scale_height: f32,
+    /// Visibility `V` at sea level in metres (optical depth 1).
+    pub visibility: f32,
+}
+
+impl Atmosphere {
+    /// The Earth's: 8 km scale height, 60 km visibility at sea level.
+    pub const EARTH: Atmosphere = Atmosphere {
+        scale_height: 8_000.0,
+        visibility: 60_000.0,
+    };
 }
 
 static NEXT_TEXTURE_VERSION: AtomicU64 = AtomicU64::new(1);
@@ -315,6 +343,10 @@ struct Globals {
     view_proj: [[f32; 4]; 4],
     sun: [f32; 4],
     params: [f32; 4],
+    /// Eye position (planet frame, f32: only directions are taken from it).
+    eye: [f32; 4],
+    /// Atmosphere: scale height (m), visibility at sea level (m), on (1/0).
+    atmos: [f32; 4],
 }
 
 #[repr(C)]
@@ -704,6 +736,16 @@ impl Renderer {
             view_proj: vp.map(|c| c.map(|v| v as f32)),
             sun: [sun[0] as f32, sun[1] as f32, sun[2] as f32, 0.0],
             params: [self.settings.ambient, 0.0, 0.0, 0.0],
+            eye: [
+                camera.position[0] as f32,
+                camera.position[1] as f32,
+                camera.position[2] as f32,
+                0.0,
+            ],
+            atmos: match self.settings.atmosphere {
+                Some(a) => [a.scale_height.max(1.0), a.visibility.max(1.0), 1.0, 0.0],
+                None => [1.0, 1.0, 0.0, 0.0],
+            },
         };
         self.queue
             .write_buffer(&self.globals_buf, 0, bytemuck::bytes_of(&globals));

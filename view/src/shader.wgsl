@@ -2,6 +2,8 @@ struct Globals {
     view_proj: mat4x4<f32>,
     sun: vec4<f32>,
     params: vec4<f32>,
+    eye: vec4<f32>,
+    atmos: vec4<f32>,
 };
 struct BlockU {
     offset: vec4<f32>,
@@ -19,6 +21,7 @@ struct VOut {
     @location(0) normal: vec3<f32>,
     @location(1) uv: vec2<f32>,
     @location(2) alt: f32,
+    @location(3) rel: vec3<f32>,
 };
 
 @vertex
@@ -38,6 +41,7 @@ fn vs(
     out.normal = normal;
     out.uv = uv;
     out.alt = alt;
+    out.rel = rel;
     return out;
 }
 
@@ -57,6 +61,28 @@ fn ramp(a: f32) -> vec3<f32> {
     return mix(brown, white, clamp((a - 1500.0) / 3500.0, 0.0, 1.0));
 }
 
+// Aerial perspective (render.rs `Atmosphere`): optical depth rho(h) L / V
+// with L the distance, at most the air column H / cos(zenith) at the point.
+fn aerial(c: vec3<f32>, rel: vec3<f32>, alt: f32) -> vec3<f32> {
+    if (g.atmos.z < 0.5) {
+        return c;
+    }
+    let dist = length(rel);
+    if (!(dist > 0.0)) {
+        return c;
+    }
+    // The point's up: eye + rel in f32 loses metres far out, not direction.
+    let up = normalize(g.eye.xyz + rel);
+    let cos_z = max(dot(-rel / dist, up), 0.02);
+    let h = clamp(alt, 0.0, 1.0e5);
+    let path = min(dist, g.atmos.x / cos_z);
+    let tau = exp(-h / g.atmos.x) * path / g.atmos.y;
+    let haze = 1.0 - exp(-tau);
+    let sun_up = clamp(dot(up, g.sun.xyz), 0.0, 1.0);
+    let sky = vec3<f32>(0.50, 0.66, 0.90) * (0.2 + 0.8 * sun_up);
+    return mix(c, sky, haze);
+}
+
 @fragment
 fn fs(in: VOut) -> @location(0) vec4<f32> {
     let t = textureSample(tex, samp, in.uv * b.tex.xy + b.tex.zw).rgb;
@@ -64,5 +90,5 @@ fn fs(in: VOut) -> @location(0) vec4<f32> {
     let n = normalize(in.normal);
     let diffuse = max(dot(n, g.sun.xyz), 0.0);
     let lit = base * (g.params.x + (1.0 - g.params.x) * diffuse);
-    return vec4<f32>(lit, 1.0);
+    return vec4<f32>(aerial(lit, in.rel, in.alt), 1.0);
 }

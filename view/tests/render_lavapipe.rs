@@ -511,6 +511,8 @@ fn ancestor_texture_is_used_with_its_transform() {
     let up = unit(mesh.centre);
     r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
     r.renderer.settings.r_min = R - 100_000.0;
+    // The texture's colours as they are (no aerial perspective).
+    r.renderer.settings.atmosphere = None;
     let blocks = vec![DrawBlock {
         id: block,
         lod: 1,
@@ -534,4 +536,142 @@ fn ancestor_texture_is_used_with_its_transform() {
     let img = r.render(&cam, &plain).unwrap();
     let px = &img.rgba[c..c + 4];
     assert!(px[1] > px[0] && px[1] > px[2], "ramp pixel {px:?}");
+}
+
+/// Aerial perspective (render.rs `Atmosphere`): seen straight down from
+/// orbit the ground keeps its colour (a thin air column), seen at a grazing
+/// angle it takes the sky's; and every eye of docs/NUMERICS.md (1 m above
+/// the ground, 1000 radii out, inside the planet) gives finite colours.
+#[test]
+fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
+    let Some(mut r) = renderer() else { return };
+    let f = Face::new(0).unwrap();
+    let block = BlockId::new(f, 3, 4, 4).unwrap();
+    let mesh = Arc::new(BlockMesh::build(
+        &datum(),
+        block,
+        W,
+        &vec![0i16; (W + 1) * (W + 1)],
+        1.0,
+        0.0,
+    ));
+    let up = unit(mesh.centre);
+    r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
+    r.renderer.settings.r_min = R - 100_000.0;
+    let blocks = vec![DrawBlock {
+        id: block,
+        lod: 0,
+        neighbour_lod_diff: [0; 4],
+        mesh: mesh.clone(),
+        colour: None,
+    }];
+    let centre_px = |img: &Image| {
+        let c = ((SIZE / 2 * SIZE + SIZE / 2) * 4) as usize;
+        [img.rgba[c], img.rgba[c + 1], img.rgba[c + 2]]
+    };
+    let blueness = |p: [u8; 3]| p[2] as f64 - p[1] as f64;
+    let mut shot = |cam: &CameraF64, air: bool| {
+        r.renderer.settings.atmosphere = air.then_some(planet_view::render::Atmosphere::EARTH);
+        r.render(cam, &blocks).unwrap()
+    };
+    // Straight down from 2000 km.
+    let down = CameraF64::look_at(
+        add(mesh.centre, up, 2_000_000.0),
+        mesh.centre,
+        [0.0, 0.0, 1.0],
+        0.5,
+    );
+    let (clear, hazy) = (
+        centre_px(&shot(&down, false)),
+        centre_px(&shot(&down, true)),
+    );
+    let d: i32 = (0..3)
+        .map(|k| (clear[k] as i32 - hazy[k] as i32).abs())
+        .max()
+        .unwrap();
+    assert!(
+        d > 0 && d < 60,
+        "from orbit, straight down: {clear:?} -> {hazy:?}"
+    );
+    // Grazing: 100 km away, 2 km up, looking at the block's centre.
+    // Level: the chord to the block's edge dips below the tangent plane.
+    let chord = sub_v(
+        sample_position(&datum(), block, W, W, W / 2, 0.0),
+        mesh.centre,
+    );
+    let dip = chord[0] * up[0] + chord[1] * up[1] + chord[2] * up[2];
+    let side = unit(sub_v(chord, [up[0] * dip, up[1] * dip, up[2] * dip]));
+    let eye = add(add(mesh.centre, side, 100_000.0), up, 2_000.0);
+    let graze = CameraF64::look_at(eye, mesh.centre, up, 0.3);
+    let (clear_g, hazy_g) = (
+        centre_px(&shot(&graze, false)),
+        centre_px(&shot(&graze, true)),
+    );
+    assert!(
+        blueness(hazy_g) > blueness(clear_g) + 40.0,
+        "grazing: {clear_g:?} -> {hazy_g:?}"
+    );
+    // Extreme eyes: every pixel is the background or a lit, hazed colour;
+    // a NaN in the haze would come out black (the background is not).
+    let background = centre_px(&shot(
+        &CameraF64::look_at(
+            add(mesh.centre, up, 1000.0),
+            add(mesh.centre, up, 2000.0),
+            side,
+            0.5,
+        ),
+        true,
+    ));
+    assert_ne!(background, [0, 0, 0]);
+    for (name, cam, centre_is_ground) in [
+        (
+            // 1 m above the vertex; flat triangles sag up to ~120 m below it.
+            "1 m above",
+            CameraF64::look_at(
+                add(mesh.centre, up, 1.0),
+                add(add(mesh.centre, side, 1000.0), up, -200.0),
+                up,
+                1.0,
+            ),
+            true,
+        ),
+        (
+            "1000 radii",
+            CameraF64::look_at(
+                add(mesh.centre, up, 1000.0 * R),
+                mesh.centre,
+                [0.0, 0.0, 1.0],
+                0.01,
+            ),
+            true,
+        ),
+        (
+            "inside",
+            CameraF64::look_at(
+                add(mesh.centre, up, -1000.0),
+                add(mesh.centre, up, 1000.0),
+                side,
+                1.0,
+            ),
+            false,
+        ),
+    ] {
+        let img = shot(&cam, true);
+        let black = img
+            .rgba
+            .chunks_exact(4)
+            .filter(|p| p[..3] == [0, 0, 0])
+            .count();
+        assert_eq!(black, 0, "{name}: {black} black pixels");
+        assert_eq!(
+            centre_px(&img) != background,
+            centre_is_ground,
+            "{name}: centre {:?}",
+            centre_px(&img)
+        );
+    }
+}
+
+fn sub_v(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
