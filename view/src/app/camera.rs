@@ -4,9 +4,12 @@
 //! normal of the datum (`direction_from_lat_lon`), east and north.
 
 use glam::DVec3;
+use planet_client::tree::{PartialTree, Samples};
 use planet_client::Camera;
 use planet_core::cube::direction_from_lat_lon;
-use planet_core::Datum;
+use planet_core::cube::FaceCoord;
+use planet_core::format::Header;
+use planet_core::{BlockId, Datum};
 use planet_view::CameraF64;
 
 /// Vertical field of view of the viewer (radians).
@@ -119,6 +122,94 @@ pub struct Input {
     pub scroll: f64,
     /// Speed multiplier (shift).
     pub boost: bool,
+    /// The point under the cursor (lat, lon in degrees, altitude in
+    /// metres), if the cursor ray meets the ground: the wheel zooms
+    /// towards it.
+    pub zoom_at: Option<(f64, f64, f64)>,
+}
+
+/// Elevation in metres of the resident ground at geodetic `(lat, lon)`
+/// (degrees): the deepest resident elevation block holding it, bilinear in
+/// its grid at the LOD it has (LOD 1: the even samples only).
+pub fn ground_elevation(tree: &PartialTree, header: &Header, lat: f64, lon: f64) -> Option<f64> {
+    let fc = FaceCoord::from_lat_lon(lat.to_radians(), lon.to_radians());
+    let et = tree.elevation();
+    let w = et.width;
+    let side = w + 1;
+    let mut best = None;
+    for level in 0..=planet_core::block::MAX_LEVEL {
+        let n = (1u64 << level) as f64;
+        let cell = |c: f64| ((c * n).floor().max(0.0) as u64).min((1u64 << level) - 1);
+        let (x, y) = (cell(fc.s), cell(fc.t));
+        let Some(id) = BlockId::new(fc.face, level, x as u32, y as u32) else {
+            break;
+        };
+        let Some(node) = et.get(&id) else { break };
+        if let Some(Samples::Elevation(g)) = node.samples.as_ref() {
+            if g.len() == side * side {
+                let step = if node.lod == 0 { 1 } else { 2 };
+                let fi = ((fc.s * n - x as f64) * w as f64).clamp(0.0, w as f64);
+                let fj = ((fc.t * n - y as f64) * w as f64).clamp(0.0, w as f64);
+                let (i0, j0) = (
+                    ((fi as usize) / step * step).min(w - step),
+                    ((fj as usize) / step * step).min(w - step),
+                );
+                let (u, v) = (
+                    (fi - i0 as f64) / step as f64,
+                    (fj - j0 as f64) / step as f64,
+                );
+                let at = |i: usize, j: usize| g[j * side + i] as f64;
+                let q = at(i0, j0) * (1.0 - u) * (1.0 - v)
+                    + at(i0 + step, j0) * u * (1.0 - v)
+                    + at(i0, j0 + step) * (1.0 - u) * v
+                    + at(i0 + step, j0 + step) * u * v;
+                best = Some(q * header.elevation_scale as f64 + header.elevation_offset as f64);
+            }
+        }
+        if !node.split {
+            break;
+        }
+    }
+    best
+}
+
+/// Where the ray through pixel `(x, y)` of a `width × height` view of
+/// `camera` meets the ground, approximated by the sphere through the ground
+/// below the eye at altitude `ground_alt` (the datum's radius there plus
+/// that altitude): `None` when the ray misses it or the eye is below it.
+pub fn pick(
+    datum: &Datum,
+    camera: &Camera,
+    x: f64,
+    y: f64,
+    width: u32,
+    height: u32,
+    ground_alt: f64,
+) -> Option<DVec3> {
+    let (w, h) = (width.max(1) as f64, height.max(1) as f64);
+    let fwd = camera.forward.normalize();
+    let right = fwd.cross(camera.up).normalize();
+    let up = right.cross(fwd);
+    let ty = (camera.fov_y * 0.5).tan();
+    let tx = ty * camera.aspect;
+    let ndc = (2.0 * x / w - 1.0, 1.0 - 2.0 * y / h);
+    let dir = (fwd + right * (ndc.0 * tx) + up * (ndc.1 * ty)).normalize();
+    let eye = camera.eye;
+    let (_, _, alt) = position_to_geodetic(datum, eye);
+    let r = eye.length() - alt + ground_alt;
+    if r.is_nan() || r <= 0.0 || eye.length() <= r {
+        return None;
+    }
+    // |eye + t·dir| = r, nearest t > 0 (relative form: no cancellation of
+    // |eye|² − r² at planet scale beyond f64's 1e-16).
+    let b = eye.dot(dir);
+    let c = (eye.length() - r) * (eye.length() + r);
+    let disc = b * b - c;
+    if disc.is_nan() || disc < 0.0 {
+        return None;
+    }
+    let t = -b - disc.sqrt();
+    (t.is_finite() && t > 0.0).then(|| eye + dir * t)
 }
 
 impl Controller {
@@ -309,7 +400,17 @@ impl Controller {
                 self.lon += (de / (rr * self.lat.to_radians().cos().max(1e-3))).to_degrees();
                 self.alt += du;
                 if input.scroll != 0.0 {
-                    self.alt *= 0.9f64.powf(input.scroll);
+                    // Towards the point under the cursor (or straight down).
+                    let k = 1.0 - 0.9f64.powf(input.scroll);
+                    match input.zoom_at {
+                        Some((zlat, zlon, zalt)) => {
+                            self.lat = (self.lat + (zlat - self.lat) * k).clamp(-89.9, 89.9);
+                            let dlon = (zlon - self.lon + 540.0).rem_euclid(360.0) - 180.0;
+                            self.lon += dlon * k;
+                            self.alt += (zalt - self.alt) * k;
+                        }
+                        None => self.alt *= 1.0 - k,
+                    }
                 }
                 self.alt = self.alt.clamp(2.0, 20.0 * r);
             }
@@ -327,6 +428,15 @@ impl Controller {
                 let zoom = input.scroll - input.up * dt * 2.0;
                 if zoom != 0.0 {
                     self.range *= 0.9f64.powf(zoom);
+                }
+                if let (Some((zlat, zlon, _)), true) = (input.zoom_at, input.scroll != 0.0) {
+                    // The target moves towards the point under the cursor
+                    // as much as the range shrinks.
+                    let k = 1.0 - 0.9f64.powf(input.scroll);
+                    self.target_lat =
+                        (self.target_lat + (zlat - self.target_lat) * k).clamp(-89.9, 89.9);
+                    let dlon = (zlon - self.target_lon + 540.0).rem_euclid(360.0) - 180.0;
+                    self.target_lon += dlon * k;
                 }
                 self.range = self.range.clamp(5.0, 20.0 * r);
             }
@@ -390,5 +500,100 @@ mod tests {
             0.1,
         );
         assert!(c.target_lat > 10.0);
+    }
+
+    #[test]
+    fn pick_finds_the_ground_under_the_cursor_at_every_scale() {
+        let d = Datum::WGS84;
+        for (lat, lon, alt) in [
+            (46.85, -121.76, 1.0),
+            (89.99, 10.0, 5000.0),
+            (0.0, 180.0, 1.0e6),
+            (-45.0, 45.0, 1000.0 * 6.4e6),
+        ] {
+            let c = Controller {
+                pitch: -90.0,
+                ..Controller::fly(lat, lon, alt)
+            };
+            let cam = c.camera(&d, 640, 480);
+            // The centre pixel: the point straight below, on the ground.
+            let p = pick(&d, &cam, 320.0, 240.0, 640, 480, 0.0).expect("centre hits");
+            let (plat, plon, palt) = position_to_geodetic(&d, p);
+            assert!(
+                palt.abs() < 1e-3 * alt.max(1.0),
+                "{lat} {lon} {alt}: alt {palt}"
+            );
+            let tol = 1e-6 + 1e-9 * alt;
+            let dlon = ((plon - lon + 540.0).rem_euclid(360.0) - 180.0).abs();
+            assert!(
+                (plat - lat).abs() < tol.max(1e-4) && (dlon < tol.max(1e-4) || lat.abs() > 89.9),
+                "{lat} {lon} {alt}: {plat} {plon}"
+            );
+            // A ground 500 m higher is met sooner.
+            if alt > 600.0 {
+                let q = pick(&d, &cam, 320.0, 240.0, 640, 480, 500.0).expect("hits");
+                assert!((q - cam.eye).length() < (p - cam.eye).length());
+            }
+        }
+        // Looking at the sky, and from inside the planet: nothing.
+        let up = Controller {
+            pitch: 80.0,
+            ..Controller::fly(10.0, 20.0, 100.0)
+        };
+        assert!(pick(&d, &up.camera(&d, 640, 480), 320.0, 240.0, 640, 480, 0.0).is_none());
+        let inside = Controller::fly(10.0, 20.0, -5000.0);
+        assert!(pick(
+            &d,
+            &inside.camera(&d, 640, 480),
+            320.0,
+            240.0,
+            640,
+            480,
+            0.0
+        )
+        .is_none());
+        // A corner pixel of a view straight down is off-centre, to the side
+        // the pixel is on (top-left: north-west when heading north).
+        let c = Controller {
+            pitch: -90.0,
+            ..Controller::fly(0.0, 0.0, 10_000.0)
+        };
+        let cam = c.camera(&d, 640, 480);
+        let p = pick(&d, &cam, 0.0, 0.0, 640, 480, 0.0).expect("corner hits");
+        let (plat, plon, _) = position_to_geodetic(&d, p);
+        assert!(plat > 0.0 && plon < 0.0, "{plat} {plon}");
+    }
+
+    #[test]
+    fn the_wheel_zooms_towards_the_point_under_the_cursor() {
+        let d = Datum::WGS84;
+        let mut c = Controller::fly(0.0, 0.0, 10_000.0);
+        let input = Input {
+            scroll: 3.0,
+            zoom_at: Some((0.1, -0.1, 500.0)),
+            ..Input::default()
+        };
+        c.update(&d, &input, 0.0);
+        let k = 1.0 - 0.9f64.powi(3);
+        assert!((c.lat - 0.1 * k).abs() < 1e-12 && (c.lon + 0.1 * k).abs() < 1e-12);
+        assert!((c.alt - (10_000.0 + (500.0 - 10_000.0) * k)).abs() < 1e-6);
+        // Across the antimeridian the short way.
+        let mut c = Controller::fly(0.0, 179.9, 10_000.0);
+        let input = Input {
+            scroll: 1.0,
+            zoom_at: Some((0.0, -179.9, 0.0)),
+            ..Input::default()
+        };
+        c.update(&d, &input, 0.0);
+        assert!(c.lon > 179.9 || c.lon < -179.9, "{}", c.lon);
+        // Orbit: the target follows the cursor as the range shrinks.
+        let mut o = Controller::orbit(10.0, 10.0, 1.0e6);
+        let input = Input {
+            scroll: 2.0,
+            zoom_at: Some((11.0, 10.0, 0.0)),
+            ..Input::default()
+        };
+        o.update(&d, &input, 0.0);
+        assert!(o.target_lat > 10.0 && o.range < 1.0e6);
     }
 }

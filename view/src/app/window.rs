@@ -145,6 +145,7 @@ pub fn run(opts: WindowOptions) -> Result<()> {
         ctl: start_cam,
         views,
         view: 0,
+        cursor_point: None,
         state,
         started: Instant::now(),
         bytes_window: (Instant::now(), 0),
@@ -597,6 +598,9 @@ struct App {
     /// Named views `G` cycles through, and the one shown last.
     views: Vec<(String, Controller)>,
     view: usize,
+    /// The point under the cursor: lat, lon, elevation, whether the
+    /// elevation is known (resident data).
+    cursor_point: Option<(f64, f64, f64, bool)>,
     /// The `--state` file.
     state: Option<std::io::BufWriter<std::fs::File>>,
     started: Instant,
@@ -680,8 +684,31 @@ impl App {
         let dt = (now - self.last_frame).as_secs_f64().max(1e-4);
         self.last_frame = now;
         let datum = self.header.datum;
-        let input = self.held();
+        let mut input = self.held();
         self.input = Input::default();
+        // The point under the cursor (the wheel zooms towards it; the HUD
+        // shows it): the cursor ray against the sphere through the ground
+        // below the eye, then again at the elevation found there.
+        self.cursor_point = None;
+        if let (Some(gfx), Some(client), Some((cx, cy))) =
+            (self.gfx.as_ref(), self.client.as_ref(), self.last_cursor)
+        {
+            let (w, h) = (gfx.config.width, gfx.config.height);
+            let cam = self.ctl.camera(&datum, w, h);
+            let tree = client.client.tree();
+            let mut ground = 0.0;
+            for _ in 0..2 {
+                let Some(p) = crate::app::camera::pick(&datum, &cam, cx, cy, w, h, ground) else {
+                    self.cursor_point = None;
+                    break;
+                };
+                let (lat, lon, _) = crate::app::camera::position_to_geodetic(&datum, p);
+                let elev = crate::app::camera::ground_elevation(tree, &self.header, lat, lon);
+                ground = elev.unwrap_or(0.0);
+                self.cursor_point = Some((lat, lon, ground, elev.is_some()));
+            }
+        }
+        input.zoom_at = self.cursor_point.map(|(lat, lon, e, _)| (lat, lon, e));
         self.ctl.update(&datum, &input, dt);
         let (Some(gfx), Some(client)) = (self.gfx.as_mut(), self.client.as_mut()) else {
             return Ok(());
@@ -756,6 +783,18 @@ impl App {
                 mode,
                 self.views[self.view].0,
             ),
+            match self.cursor_point {
+                Some((clat, clon, e, known)) => format!(
+                    "cursor {}  elev {}",
+                    hud::lat_lon(clat, clon),
+                    if known {
+                        hud::metres(e)
+                    } else {
+                        "?".to_string()
+                    }
+                ),
+                None => "cursor: sky".to_string(),
+            },
             format!(
                 "cracks {}  mesh jobs {}",
                 if self.crack_fixing { "fixed" } else { "OFF" },
@@ -800,6 +839,7 @@ impl App {
                 "bytes_received": received,
                 "in_flight": s.in_flight,
                 "max_sse_px": s.max_screen_error,
+                "cursor": self.cursor_point.map(|(a, b, e, _)| [a, b, e]),
             });
             writeln!(out_state, "{line}")
                 .and_then(|()| out_state.flush())
