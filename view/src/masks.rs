@@ -199,8 +199,13 @@ fn edge_strip(w: usize, s: usize, outer: usize, edge: Edge, out: &mut Vec<u32>) 
         } else if k + 1 >= inner_pts.len() {
             true
         } else {
-            // Compare midpoints of the candidate new edges.
-            outer_pts[o + 1] + inner_pts[k] <= inner_pts[k + 1] + outer_pts[o]
+            // The next vertex further back along the edge (ties: the
+            // outer one). Comparing the candidate edges' midpoints instead
+            // is a comparison of the two chains' steps, the same at every
+            // position: with equal steps it always chose the outer chain,
+            // and every edge strip became two fans of long thin triangles
+            // (smeared normals along every block edge).
+            outer_pts[o + 1] <= inner_pts[k + 1]
         };
         if advance_outer {
             tri((outer_pts[o], 0), (outer_pts[o + 1], 0), (inner_pts[k], s));
@@ -326,5 +331,46 @@ mod tests {
             let (i, j) = ij(64, v);
             i % 2 == 0 && j % 2 == 0
         }));
+    }
+
+    /// Edge strip triangles are local: none spans more along its edge than
+    /// one outer step plus one inner step (the zip alternates between the
+    /// chains; it used to consume the outer chain first, making two fans of
+    /// triangles as long as the block, which smeared normals along every
+    /// block edge).
+    #[test]
+    fn edge_strip_triangles_are_local() {
+        for w in [8usize, 16, 64] {
+            let m = Masks::new(w);
+            for (lod, l) in m.lods.iter().enumerate() {
+                let s = 1usize << lod;
+                for (e, ranges) in l.edges.iter().enumerate() {
+                    let edge = Edge::from_index(e);
+                    for (d, r) in ranges.iter().enumerate() {
+                        let outer = s << d;
+                        for t in
+                            m.indices[r.range().start as usize..r.range().end as usize].chunks(3)
+                        {
+                            let along: Vec<usize> = t
+                                .iter()
+                                .map(|&v| {
+                                    let (i, j) = (v as usize % (w + 1), v as usize / (w + 1));
+                                    if edge.is_vertical() {
+                                        j
+                                    } else {
+                                        i
+                                    }
+                                })
+                                .collect();
+                            let span = along.iter().max().unwrap() - along.iter().min().unwrap();
+                            assert!(
+                                span <= outer + s,
+                                "w {w} lod {lod} {edge:?} d {d}: triangle {t:?} spans {span}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
     }
 }

@@ -212,10 +212,15 @@ fn every_control_moves_the_camera_as_specified() {
     // the view (heading north, looking down), the eye moves west; the
     // state names that point on the ground.
     v.xdotool(&["mousemove", "--window", &wid, "60", "400"]);
-    let a = v.until("a ground point under the cursor", |s| s["cursor"].is_array());
+    let a = v.until("a ground point under the cursor", |s| {
+        s["cursor"].is_array()
+    });
     v.xdotool(&["click", "--repeat", "3", "--delay", "60", "4"]);
     let b = v.after_frames(3);
-    assert!(f(&b, "lon") < f(&a, "lon") - 1e-4, "wheel at the left: {a} -> {b}");
+    assert!(
+        f(&b, "lon") < f(&a, "lon") - 1e-4,
+        "wheel at the left: {a} -> {b}"
+    );
     assert!(f(&b, "alt") < f(&a, "alt"), "wheel at the left: {a} -> {b}");
     v.xdotool(&["mousemove", "--window", &wid, "320", "240"]);
     // Drag to the right turns the view (heading grows), up/down tilts.
