@@ -238,10 +238,10 @@ pub struct Atmosphere {
 }
 
 impl Atmosphere {
-    /// The Earth's: 8 km scale height, 60 km visibility at sea level.
+    /// The Earth's: 8 km scale height, 120 km visibility at sea level (clear air).
     pub const EARTH: Atmosphere = Atmosphere {
         scale_height: 8_000.0,
-        visibility: 60_000.0,
+        visibility: 120_000.0,
     };
 }
 
