@@ -794,6 +794,7 @@ impl Renderer {
             }
             let mut tex = [1.0f32, 1.0, 0.0, 0.0];
             let mut has_tex = 0.0;
+            let mut coarse = 0.0f32;
             if let Some(c) = &b.colour {
                 let tkey = (c.texture.id, c.texture.version);
                 if let Some(t) = self.textures.get_mut(&tkey) {
@@ -816,6 +817,10 @@ impl Renderer {
                 }
                 tex = [c.scale[0], c.scale[1], c.offset[0], c.offset[1]];
                 has_tex = 1.0;
+                // How many octaves the texture is coarser than the mesh:
+                // mesh samples per texel across the block.
+                let texels = c.texture.levels.first().map_or(1, |l| l.0) as f32 * c.scale[0];
+                coarse = (m.w as f32 / texels.max(1e-6)).log2().max(0.0);
             }
             let rel = [
                 m.centre[0] - camera.position[0],
@@ -827,7 +832,7 @@ impl Renderer {
                 offset: [off.hi[0], off.hi[1], off.hi[2], 0.0],
                 offset_lo: [off.lo[0], off.lo[1], off.lo[2], 0.0],
                 tex,
-                flags: [has_tex, 0.0, 0.0, 0.0],
+                flags: [has_tex, coarse, 0.0, 0.0],
             };
             let o = k * BLOCK_UNIFORM_STRIDE as usize;
             uniforms[o..o + std::mem::size_of::<BlockUniform>()]

@@ -83,11 +83,30 @@ fn aerial(c: vec3<f32>, rel: vec3<f32>, alt: f32) -> vec3<f32> {
     return mix(c, sky, haze);
 }
 
+// Where the colour texture is coarser than the mesh (`coarse` octaves of
+// mesh samples per texel): rock on steep slopes and snow on high flat
+// ground, blended in as the texture gets coarser, so that 10 m relief under
+// a 1 km texel does not look like a smooth texture.
+fn detail(c: vec3<f32>, n: vec3<f32>, rel: vec3<f32>, alt: f32, coarse: f32) -> vec3<f32> {
+    let k = clamp((coarse - 1.0) / 3.0, 0.0, 1.0);
+    if (k <= 0.0) {
+        return c;
+    }
+    let up = normalize(g.eye.xyz + rel);
+    let flat = clamp(dot(n, up), 0.0, 1.0);
+    let rock = vec3<f32>(0.32, 0.29, 0.26);
+    let steep = smoothstep(0.9, 0.7, flat);
+    var out = mix(c, rock, steep * 0.8);
+    let snow = smoothstep(3500.0, 4500.0, alt) * smoothstep(0.75, 0.9, flat);
+    out = mix(out, vec3<f32>(0.92, 0.93, 0.95), snow);
+    return mix(c, out, k);
+}
+
 @fragment
 fn fs(in: VOut) -> @location(0) vec4<f32> {
     let t = textureSample(tex, samp, in.uv * b.tex.xy + b.tex.zw).rgb;
-    let base = select(ramp(in.alt), t, b.flags.x > 0.5);
     let n = normalize(in.normal);
+    let base = select(ramp(in.alt), detail(t, n, in.rel, in.alt, b.flags.y), b.flags.x > 0.5);
     let diffuse = max(dot(n, g.sun.xyz), 0.0);
     let lit = base * (g.params.x + (1.0 - g.params.x) * diffuse);
     return vec4<f32>(aerial(lit, in.rel, in.alt), 1.0);

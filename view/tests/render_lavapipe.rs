@@ -675,3 +675,61 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
 fn sub_v(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
+
+/// Where the texture is much coarser than the mesh, steep slopes take a
+/// rock colour (procedural detail, shader.wgsl `detail`); where it is as
+/// fine as the mesh, the texture is drawn as it is.
+#[test]
+fn coarse_colour_gets_rock_on_steep_slopes() {
+    let Some(mut r) = renderer() else { return };
+    let f = Face::new(2).unwrap();
+    let block = BlockId::new(f, 12, 1000, 1000).unwrap();
+    // A 45° ramp: 16 samples over the block's width (about 2.4 km at level 12).
+    let unit = Datum::Sphere { radius: 1.0 };
+    let a = sample_position(&unit, block, W, 0, 0, 0.0);
+    let b = sample_position(&unit, block, W, W, 0, 0.0);
+    let width = R * ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+    let g: Vec<i16> = (0..(W + 1) * (W + 1))
+        .map(|k| ((k % (W + 1)) as f64 / W as f64 * width) as i16)
+        .collect();
+    let mesh = Arc::new(BlockMesh::build(&datum(), block, W, &g, 1.0, 0.0));
+    let up = unit_v(mesh.centre);
+    r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
+    r.renderer.settings.r_min = R - 100_000.0;
+    r.renderer.settings.atmosphere = None;
+    let red = vec![[220u8, 20, 20]; 8 * 8];
+    let lod1 = planet_core::lod::colour_filter(&red, 8);
+    let cam = CameraF64::look_at(
+        add(mesh.centre, up, 20_000.0),
+        mesh.centre,
+        [0.0, 0.0, 1.0],
+        0.3,
+    );
+    let centre = |tex_block: BlockId, r: &mut HeadlessRenderer| {
+        let tex = Arc::new(BlockTexture::new(tex_block, 8, Some(&red), &lod1));
+        let blocks = vec![DrawBlock {
+            id: block,
+            lod: 0,
+            neighbour_lod_diff: [0; 4],
+            mesh: mesh.clone(),
+            colour: ColourRef::for_block(tex, block),
+        }];
+        let img = r.render(&cam, &blocks).unwrap();
+        let c = ((SIZE / 2 * SIZE + SIZE / 2) * 4) as usize;
+        [img.rgba[c], img.rgba[c + 1], img.rgba[c + 2]]
+    };
+    // Texture of the block's ancestor 4 levels up (16 mesh samples per texel).
+    let coarse = centre(block.ancestor(8), &mut r);
+    // A texture as fine as the mesh would need 16 texels: with 8 over the
+    // block itself it is one octave coarser, where the blend starts.
+    let own = centre(block, &mut r);
+    assert!(own[0] > 120 && own[1] < 60, "own texture: {own:?}");
+    assert!(
+        coarse[0] < own[0] - 40 && coarse[1] > own[1] + 20,
+        "coarse texture on a 45° slope looks like rock: {coarse:?} (own {own:?})"
+    );
+}
+
+fn unit_v(v: [f64; 3]) -> [f64; 3] {
+    unit(v)
+}
