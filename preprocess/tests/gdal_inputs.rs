@@ -477,3 +477,77 @@ fn moon_sphere_from_gdal_keys_colour_alone_and_mixed_bodies() {
     );
     assert!(!dir.path().join("mixed.db").exists());
 }
+
+/// Every projection family the issue names, as GDAL writes it (EPSG codes
+/// and user-defined keys from PROJ strings), and geographic CRSs on other
+/// Earth datums: where a latitude/longitude falls in the raster agrees with
+/// PROJ's `gdaltransform` to 10⁻⁴ pixel.
+#[test]
+fn projection_families_map_like_proj() {
+    let Some(rainier) = rainier() else {
+        eprintln!("note: ../shared/data not found, test skipped");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let crop = dir.path().join("crop.tif");
+    tool(
+        "gdal_translate",
+        &[
+            "-q",
+            "-srcwin",
+            "500",
+            "500",
+            "100",
+            "100",
+            s(&rainier),
+            s(&crop),
+        ],
+        "",
+    );
+    let c = GeoTiff::open(&crop, 1 << 20).unwrap();
+    let (la0, la1, lo0, lo1) = c.bounds();
+    let cases: &[(&str, &str)] = &[
+        ("tmerc", "+proj=tmerc +lat_0=46 +lon_0=-121 +k=0.9996 +x_0=500000 +y_0=0 +datum=WGS84 +units=m"),
+        ("lcc2sp", "+proj=lcc +lat_1=45 +lat_2=48 +lat_0=46 +lon_0=-121 +x_0=1000 +y_0=2000 +datum=WGS84 +units=m"),
+        ("lcc_ft", "EPSG:2285"),
+        ("albers", "EPSG:5070"),
+        ("albers_user", "+proj=aea +lat_1=40 +lat_2=50 +lat_0=45 +lon_0=-120 +ellps=GRS80 +units=m"),
+        ("merc", "EPSG:3395"),
+        ("webmerc", "EPSG:3857"),
+        ("stere_user", "+proj=stere +lat_0=90 +lat_ts=60 +lon_0=-100 +datum=WGS84 +units=m"),
+        ("nad83", "EPSG:4269"),
+        ("etrs89", "EPSG:4258"),
+    ];
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    for (name, srs) in cases {
+        let out = dir.path().join(format!("{name}.tif"));
+        tool("gdalwarp", &["-q", "-t_srs", srs, s(&crop), s(&out)], "");
+        let t = GeoTiff::open(&out, 1 << 20).unwrap_or_else(|e| panic!("{name} ({srs}): {e}"));
+        let pts: Vec<(f64, f64)> = (0..100)
+            .map(|_| (rng.random_range(la0..la1), rng.random_range(lo0..lo1)))
+            .collect();
+        let input: String = pts.iter().map(|(la, lo)| format!("{lo} {la}\n")).collect();
+        let proj = tool(
+            "gdaltransform",
+            &["-i", "-t_srs", "EPSG:4326", s(&out)],
+            &input,
+        );
+        let mut worst: f64 = 0.0;
+        for ((la, lo), line) in pts.iter().zip(proj.lines()) {
+            let v: Vec<f64> = line
+                .split_whitespace()
+                .map(|x| x.parse().unwrap())
+                .collect();
+            let (c, r) = t.pixel_of(*la, *lo);
+            worst = worst
+                .max((c + 0.5 - v[0]).abs())
+                .max((r + 0.5 - v[1]).abs());
+        }
+        assert!(
+            worst < 1e-4,
+            "{name} ({srs}, read as {:?}): {worst} pixel from PROJ",
+            t.crs
+        );
+        assert!(t.covers(0.5 * (la0 + la1), 0.5 * (lo0 + lo1)), "{name}");
+    }
+}

@@ -327,3 +327,71 @@ fn void_on_steep_slope_over_low_coarse_is_no_pit() {
         );
     }
 }
+
+/// A synthetic planetary GeoTIFF whose GeoKeys declare a user-defined
+/// geographic CRS on a sphere of 1 737 400 m (GeographicType, datum and
+/// ellipsoid 32767, GeogSemiMajorAxis and GeogSemiMinorAxis in the double
+/// parameters): it builds a sphere of that radius with no option, and its
+/// heights are not converted with an Earth geoid.
+#[test]
+fn user_defined_moon_sphere_builds_a_sphere_of_its_radius() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("moon.tif");
+    // 36 × 18 pixels of 10°, global; heights vary with longitude.
+    let data: Vec<f32> = (0..18 * 36)
+        .map(|i| (i % 36) as f32 * 100.0 - 1000.0)
+        .collect();
+    let keys: Vec<u16> = vec![
+        1, 1, 0, 7, //
+        1024, 0, 1, 2, // GTModelType geographic
+        1025, 0, 1, 1, // pixel-is-area
+        2048, 0, 1, 32767, // GeographicType user-defined
+        2050, 0, 1, 32767, // GeogGeodeticDatum user-defined
+        2054, 0, 1, 9102, // degrees
+        2057, 34736, 1, 0, // GeogSemiMajorAxis = doubles[0]
+        2058, 34736, 1, 1, // GeogSemiMinorAxis = doubles[1]
+    ];
+    {
+        let mut enc = TiffEncoder::new(File::create(&p).unwrap()).unwrap();
+        let mut img = enc.new_image::<colortype::Gray32Float>(36, 18).unwrap();
+        let d = img.encoder();
+        d.write_tag(Tag::ModelPixelScaleTag, &[10.0f64, 10.0, 0.0][..])
+            .unwrap();
+        d.write_tag(
+            Tag::ModelTiepointTag,
+            &[0.0f64, 0.0, 0.0, -180.0, 90.0, 0.0][..],
+        )
+        .unwrap();
+        d.write_tag(Tag::GeoKeyDirectoryTag, &keys[..]).unwrap();
+        d.write_tag(Tag::GeoDoubleParamsTag, &[1_737_400.0f64, 1_737_400.0][..])
+            .unwrap();
+        img.write_data(&data).unwrap();
+    }
+    let t = GeoTiff::open(&p, 1 << 20).unwrap();
+    assert_eq!(
+        t.crs.datum,
+        planet_core::Datum::Sphere {
+            radius: 1_737_400.0
+        }
+    );
+    let out = dir.path().join("moon.db");
+    planet_preprocess::build_rasters(&[p.as_path()], None, &out, &Default::default()).unwrap();
+    let s = planet_preprocess::db::Sampler::open(&out).unwrap();
+    assert_eq!(
+        s.header().datum,
+        planet_core::Datum::Sphere {
+            radius: 1_737_400.0
+        }
+    );
+    assert_eq!(
+        s.header().datum.body(),
+        Some(planet_core::datum::Body::Moon)
+    );
+    assert_eq!(
+        s.vertical_datum(),
+        Some(planet_preprocess::geoid::VerticalDatum::Ellipsoid)
+    );
+    // Pixel (18, 9)'s value (800 m) is at its centre (5°E, 5°S): no geoid.
+    let v = s.sample(-5.0, 5.0).unwrap().metres;
+    assert!((v - 800.0).abs() < 1.0, "{v}");
+}
