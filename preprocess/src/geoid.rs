@@ -64,6 +64,12 @@ impl std::fmt::Display for VerticalDatum {
     }
 }
 
+/// Resident bytes of the `egm96` crate's coefficient table once used
+/// (65 342 × 4 f64).
+pub const EGM96_FIXED_BYTES: usize = 65_342 * 4 * 8;
+/// Bytes of one thread's synthesis scratch (the `egm96` crate's buffers).
+pub const EGM96_THREAD_BYTES: usize = (65_342 + 4 * 362) * 8;
+
 /// The finest EGM96 node spacing, degrees (NGA's and PROJ's 15′ grid).
 pub const FINEST_SPACING: f64 = 0.25;
 /// The coarsest node spacing, degrees.

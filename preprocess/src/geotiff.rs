@@ -150,6 +150,12 @@ fn terr(path: &Path, e: impl std::fmt::Display) -> GeoError {
     }
 }
 
+/// Lattice step of [`GeoTiff::pixels_of_grid`], in grid points.
+pub const APPROX_STEP: usize = 8;
+/// Largest interpolation error [`GeoTiff::pixels_of_grid`] accepts, pixels
+/// (gdalwarp's default `-et`).
+pub const APPROX_ERROR_PX: f64 = 0.125;
+
 /// Rows per chunk of an `.hgt` file.
 const HGT_CHUNK_ROWS: u32 = 64;
 
@@ -318,8 +324,11 @@ impl GeoTiff {
         backend: Backend,
         cache_bytes: usize,
     ) -> Result<GeoTiff, GeoError> {
-        if width == 0 || height == 0 {
-            return Err(terr(path, "empty raster"));
+        if width == 0 || height == 0 || width > MAX_SIDE || height > MAX_SIDE {
+            return Err(terr(
+                path,
+                format!("raster of {width} × {height} pixels (1 to {MAX_SIDE} a side are read)"),
+            ));
         }
         let chunks_across = width.div_ceil(chunk_w);
         let mut t = GeoTiff {
@@ -522,11 +531,35 @@ impl GeoTiff {
         if self.is_global() {
             return true;
         }
-        let (b0, b1, _, _) = self.bbox;
-        if lat < b0 - 1e-9 || lat > b1 + 1e-9 {
+        if !self.in_bbox(lat, lon) {
             return false;
         }
         let (c, r) = self.pixel_of(lat, lon);
+        self.covers_at(lat, lon, c, r)
+    }
+
+    /// The bounding-box test of [`GeoTiff::covers`] (a projection can map
+    /// a point far outside the raster, e.g. beyond a transverse Mercator's
+    /// zone, into its pixel range).
+    #[inline]
+    fn in_bbox(&self, lat: f64, lon: f64) -> bool {
+        let (b0, b1, l0, l1) = self.bbox;
+        if lat < b0 - 1e-9 || lat > b1 + 1e-9 {
+            return false;
+        }
+        self.crs.is_identity() || (lon >= l0 - 1e-9 && lon <= l1 + 1e-9)
+    }
+
+    /// [`GeoTiff::covers`] for a point whose pixel coordinates `(c, r)` are
+    /// known (from [`GeoTiff::pixel_of`] or [`GeoTiff::pixels_of_grid`]).
+    #[inline]
+    pub fn covers_at(&self, lat: f64, lon: f64, c: f64, r: f64) -> bool {
+        if self.is_global() {
+            return true;
+        }
+        if !self.in_bbox(lat, lon) {
+            return false;
+        }
         let inside =
             c >= 0.0 && c <= (self.width - 1) as f64 && r >= 0.0 && r <= (self.height - 1) as f64;
         if !inside || self.spans.is_none() {
@@ -538,6 +571,86 @@ impl GeoTiff {
             || self.is_exterior(c1, r0)
             || self.is_exterior(c0, r1)
             || self.is_exterior(c1, r1))
+    }
+
+    /// [`GeoTiff::pixel_of`] for a grid of `nx × ny` points (row-major
+    /// `(lat, lon)` degrees), as gdalwarp's approximate transformer does
+    /// (GDALApproxTransform, `-et 0.125`): exact projections on a lattice
+    /// of every [`APPROX_STEP`]th point and at each lattice cell's middle
+    /// point; where the bilinear interpolation of the lattice misses the
+    /// middle point by more than [`APPROX_ERROR_PX`] pixel, or a corner
+    /// does not project, every point of the cell is projected exactly.
+    /// Rasters whose CRS is the surface's longitude/latitude are mapped
+    /// exactly (that is as cheap).
+    pub fn pixels_of_grid(
+        &self,
+        ll: &[(f64, f64)],
+        nx: usize,
+        ny: usize,
+        out: &mut Vec<(f64, f64)>,
+    ) {
+        out.clear();
+        if self.crs.is_identity() || nx < 3 || ny < 3 {
+            out.extend(ll.iter().map(|&(la, lo)| self.pixel_of(la, lo)));
+            return;
+        }
+        out.resize(nx * ny, (f64::NAN, f64::NAN));
+        let lattice = |n: usize| -> Vec<usize> {
+            let mut v: Vec<usize> = (0..n).step_by(APPROX_STEP).collect();
+            if v.last() != Some(&(n - 1)) {
+                v.push(n - 1);
+            }
+            v
+        };
+        let (xs, ys) = (lattice(nx), lattice(ny));
+        for &y in &ys {
+            for &x in &xs {
+                let (la, lo) = ll[y * nx + x];
+                out[y * nx + x] = self.pixel_of(la, lo);
+            }
+        }
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        for jy in 0..ys.len() - 1 {
+            let (y0, y1) = (ys[jy], ys[jy + 1]);
+            for jx in 0..xs.len() - 1 {
+                let (x0, x1) = (xs[jx], xs[jx + 1]);
+                let k = [
+                    out[y0 * nx + x0],
+                    out[y0 * nx + x1],
+                    out[y1 * nx + x0],
+                    out[y1 * nx + x1],
+                ];
+                let interp = |x: usize, y: usize| -> (f64, f64) {
+                    let fx = (x - x0) as f64 / (x1 - x0) as f64;
+                    let fy = (y - y0) as f64 / (y1 - y0) as f64;
+                    let top = (lerp(k[0].0, k[1].0, fx), lerp(k[0].1, k[1].1, fx));
+                    let bot = (lerp(k[2].0, k[3].0, fx), lerp(k[2].1, k[3].1, fx));
+                    (lerp(top.0, bot.0, fy), lerp(top.1, bot.1, fy))
+                };
+                let (mx, my) = ((x0 + x1) / 2, (y0 + y1) / 2);
+                let exact_mid = {
+                    let (la, lo) = ll[my * nx + mx];
+                    self.pixel_of(la, lo)
+                };
+                let guess = interp(mx, my);
+                let good = k.iter().all(|c| c.0.is_finite() && c.1.is_finite())
+                    && (guess.0 - exact_mid.0).abs() <= APPROX_ERROR_PX
+                    && (guess.1 - exact_mid.1).abs() <= APPROX_ERROR_PX;
+                for y in y0..=y1 {
+                    for x in x0..=x1 {
+                        if (x == x0 || x == x1) && (y == y0 || y == y1) {
+                            continue;
+                        }
+                        out[y * nx + x] = if good {
+                            interp(x, y)
+                        } else {
+                            let (la, lo) = ll[y * nx + x];
+                            self.pixel_of(la, lo)
+                        };
+                    }
+                }
+            }
+        }
     }
 
     /// Bounding box `(lat_min, lat_max, lon_min, lon_max)` of the pixel values.
@@ -803,4 +916,36 @@ pub fn parse_hgt_name(path: &Path) -> Option<(i32, i32)> {
         _ => return None,
     };
     ((-90..90).contains(&lat) && (-180..180).contains(&lon)).then_some((lat, lon))
+}
+
+/// Largest width or height of a raster read (2²⁴: a 1″ global raster is
+/// 1.3 M × 0.65 M); larger headers are refused before any allocation that
+/// scales with them.
+pub const MAX_SIDE: u32 = 1 << 24;
+
+/// What the `raster_readers` fuzz target and its replay test run on
+/// untrusted bytes at `path`: open the raster with a 1 MiB chunk cache,
+/// map its corners and centre through its CRS and read those pixels.
+pub fn probe(path: &Path) -> Result<(), GeoError> {
+    let t = GeoTiff::open(path, 1 << 20)?;
+    let (w, h) = (t.width as i64, t.height as i64);
+    for (c, r) in [
+        (0, 0),
+        (w - 1, 0),
+        (0, h - 1),
+        (w - 1, h - 1),
+        (w / 2, h / 2),
+    ] {
+        let (la, lo) = t.position_of(c, r);
+        if la.is_finite() {
+            let _ = t.pixel_of(la, lo);
+            let _ = t.covers(la, lo);
+        }
+        if t.kind.is_elevation() {
+            t.elevation(c, r)?;
+        } else {
+            t.colour(c, r)?;
+        }
+    }
+    Ok(())
 }

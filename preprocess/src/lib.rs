@@ -78,7 +78,15 @@ pub fn open_rasters_noting(
             "no elevation or colour source given".into(),
         ));
     }
-    let cache = opts.max_memory_mb.max(8) << 19; // half the bound, in bytes
+    let mut cache = opts.max_memory_mb.max(8) << 19; // half the bound, in bytes
+                                                     // EGM96's synthesis memory (its coefficient table, paged in, and one
+                                                     // scratch per worker) comes out of the raster caches' half when an
+                                                     // input may need it.
+    if opts.vertical.is_none() || opts.vertical == Some(geoid::VerticalDatum::Egm96) {
+        let threads = opts.threads.unwrap_or_else(rayon::current_num_threads);
+        let geoid = geoid::EGM96_FIXED_BYTES + threads * geoid::EGM96_THREAD_BYTES;
+        cache = cache.saturating_sub(geoid).max(cache / 4);
+    }
     let stack = source::ElevationStack::open_with(elevation, cache * 3 / 4, opts.vertical, note)?;
     let colour = match colour {
         Some(p) => Some(source::ColourSource::open(p, cache / 4)?),

@@ -299,8 +299,51 @@ impl StackReader<'_> {
 
     /// [`ElevationStack::sample_layer`].
     pub fn sample_layer(&mut self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
-        let t = self.layers[idx].tiff();
-        let (c, r) = t.pixel_of(lat, lon);
+        let (c, r) = self.layers[idx].tiff().pixel_of(lat, lon);
+        self.sample_layer_at(idx, lat, lon, c, r)
+    }
+
+    /// Elevations (m above the ellipsoid) of a row-major grid of `nx × ny`
+    /// points `(lat, lon)` degrees, as [`StackReader::sample`] at each, with
+    /// each layer's pixel coordinates from [`GeoTiff::pixels_of_grid`]
+    /// (computed for a layer only once a point needs it).
+    pub fn sample_grid(
+        &mut self,
+        ll: &[(f64, f64)],
+        nx: usize,
+        ny: usize,
+        out: &mut [f64],
+    ) -> Result<(), GeoError> {
+        let n = self.layers.len();
+        let mut px: Vec<Option<Vec<(f64, f64)>>> = vec![None; n];
+        for (k, &(lat, lon)) in ll.iter().enumerate() {
+            out[k] = 0.0;
+            for idx in (0..n).rev() {
+                let grid = px[idx].get_or_insert_with(|| {
+                    let mut v = Vec::new();
+                    self.layers[idx].tiff().pixels_of_grid(ll, nx, ny, &mut v);
+                    v
+                });
+                let (c, r) = grid[k];
+                if self.layers[idx].tiff().covers_at(lat, lon, c, r) {
+                    out[k] = self.sample_layer_at(idx, lat, lon, c, r)?;
+                    break;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Bilinear sample of layer `idx` at pixel coordinates `(c, r)` of the
+    /// point (lat, lon), voids filled, converted to ellipsoidal height.
+    fn sample_layer_at(
+        &mut self,
+        idx: usize,
+        lat: f64,
+        lon: f64,
+        c: f64,
+        r: f64,
+    ) -> Result<f64, GeoError> {
         let (c0, r0) = (c.floor(), r.floor());
         let (fc, fr) = (c - c0, r - r0);
         let (c0, r0) = (c0 as i64, r0 as i64);
@@ -571,6 +614,15 @@ impl ColourSource {
     /// [`ColourSource::sample`] through a worker's reader of this raster.
     pub fn sample_with(rd: &mut TiffReader<'_>, lat: f64, lon: f64) -> Result<Rgb, GeoError> {
         let (c, r) = rd.tiff().pixel_of(lat, lon);
+        Self::sample_px(rd, c, r)
+    }
+
+    /// Bilinear colour at fractional pixel `(c, r)` (black where the
+    /// projection does not reach).
+    pub fn sample_px(rd: &mut TiffReader<'_>, c: f64, r: f64) -> Result<Rgb, GeoError> {
+        if !(c.is_finite() && r.is_finite()) {
+            return Ok([0; 3]);
+        }
         let (c0, r0) = (c.floor(), r.floor());
         let (fc, fr) = (c - c0, r - r0);
         let (c0, r0) = (c0 as i64, r0 as i64);
@@ -629,13 +681,19 @@ impl GridSource for RasterSource {
                 .collect()
         };
         let (us, vs) = (axis(b.x), axis(b.y));
-        let mut rd = self.elevation.reader();
-        for j in 0..=w {
-            for i in 0..=w {
-                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(us[i], vs[j])));
-                let m = rd.sample(la.to_degrees(), lo.to_degrees())?;
-                out[j * (w + 1) + i] = quantise(m, self.scale);
+        let mut ll = Vec::with_capacity((w + 1) * (w + 1));
+        for &v in &vs {
+            for &u in &us {
+                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(u, v)));
+                ll.push((la.to_degrees(), lo.to_degrees()));
             }
+        }
+        let mut m = vec![0f64; ll.len()];
+        self.elevation
+            .reader()
+            .sample_grid(&ll, w + 1, w + 1, &mut m)?;
+        for (o, v) in out.iter_mut().zip(&m) {
+            *o = quantise(*v, self.scale);
         }
         Ok(())
     }
@@ -652,17 +710,19 @@ impl GridSource for RasterSource {
                 .collect()
         };
         let (us, vs) = (axis(b.x), axis(b.y));
-        let mut rd = c.tiff.reader();
-        let mut out = Vec::with_capacity(w * w);
+        let mut ll = Vec::with_capacity(w * w);
         for &v in &vs {
             for &u in &us {
                 let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(u, v)));
-                out.push(ColourSource::sample_with(
-                    &mut rd,
-                    la.to_degrees(),
-                    lo.to_degrees(),
-                )?);
+                ll.push((la.to_degrees(), lo.to_degrees()));
             }
+        }
+        let mut px = Vec::new();
+        c.tiff.pixels_of_grid(&ll, w, w, &mut px);
+        let mut rd = c.tiff.reader();
+        let mut out = Vec::with_capacity(w * w);
+        for &(col, row) in &px {
+            out.push(ColourSource::sample_px(&mut rd, col, row)?);
         }
         Ok(out)
     }
