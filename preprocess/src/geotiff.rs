@@ -150,6 +150,45 @@ fn terr(path: &Path, e: impl std::fmt::Display) -> GeoError {
     }
 }
 
+/// The points of a sampling grid as unit directions (planet space), with
+/// their latitude/longitude (degrees) computed only where asked (two
+/// `atan2` per point were a third of a projected build's time).
+pub struct GridPoints<'a> {
+    dirs: &'a [[f64; 3]],
+    ll: Vec<(f64, f64)>,
+}
+
+impl<'a> GridPoints<'a> {
+    /// Points at these unit directions.
+    pub fn new(dirs: &'a [[f64; 3]]) -> GridPoints<'a> {
+        GridPoints {
+            dirs,
+            ll: vec![(f64::NAN, f64::NAN); dirs.len()],
+        }
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.dirs.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.dirs.is_empty()
+    }
+
+    /// Latitude and longitude (degrees) of point `k`.
+    #[inline]
+    pub fn lat_lon(&mut self, k: usize) -> (f64, f64) {
+        let e = &mut self.ll[k];
+        if e.0.is_nan() {
+            let (la, lo) = planet_core::cube::lat_lon_from_direction(self.dirs[k]);
+            *e = (la.to_degrees(), lo.to_degrees());
+        }
+        *e
+    }
+}
+
 /// Lattice step of [`GeoTiff::pixels_of_grid`], in grid points.
 pub const APPROX_STEP: usize = 8;
 /// Largest interpolation error [`GeoTiff::pixels_of_grid`] accepts, pixels
@@ -543,6 +582,9 @@ impl GeoTiff {
     /// zone, into its pixel range).
     #[inline]
     fn in_bbox(&self, lat: f64, lon: f64) -> bool {
+        if self.is_global() {
+            return true;
+        }
         let (b0, b1, l0, l1) = self.bbox;
         if lat < b0 - 1e-9 || lat > b1 + 1e-9 {
             return false;
@@ -554,11 +596,15 @@ impl GeoTiff {
     /// known (from [`GeoTiff::pixel_of`] or [`GeoTiff::pixels_of_grid`]).
     #[inline]
     pub fn covers_at(&self, lat: f64, lon: f64, c: f64, r: f64) -> bool {
+        self.in_bbox(lat, lon) && self.covers_pixel(c, r)
+    }
+
+    /// [`GeoTiff::covers`] for pixel coordinates from
+    /// [`GeoTiff::pixels_of_grid`] (which applied the bounding-box test).
+    #[inline]
+    pub fn covers_pixel(&self, c: f64, r: f64) -> bool {
         if self.is_global() {
             return true;
-        }
-        if !self.in_bbox(lat, lon) {
-            return false;
         }
         let inside =
             c >= 0.0 && c <= (self.width - 1) as f64 && r >= 0.0 && r <= (self.height - 1) as f64;
@@ -573,25 +619,34 @@ impl GeoTiff {
             || self.is_exterior(c1, r1))
     }
 
-    /// [`GeoTiff::pixel_of`] for a grid of `nx × ny` points (row-major
-    /// `(lat, lon)` degrees), as gdalwarp's approximate transformer does
-    /// (GDALApproxTransform, `-et 0.125`): exact projections on a lattice
-    /// of every [`APPROX_STEP`]th point and at each lattice cell's middle
-    /// point; where the bilinear interpolation of the lattice misses the
-    /// middle point by more than [`APPROX_ERROR_PX`] pixel, or a corner
-    /// does not project, every point of the cell is projected exactly.
-    /// Rasters whose CRS is the surface's longitude/latitude are mapped
-    /// exactly (that is as cheap).
+    /// [`GeoTiff::pixel_of`] for a grid of `nx × ny` points (row-major),
+    /// NaN for points outside the raster's bounding box, as gdalwarp's
+    /// approximate transformer does (GDALApproxTransform, `-et 0.125`):
+    /// exact projections on a lattice of every [`APPROX_STEP`]th point and
+    /// at each lattice cell's middle point; where the bilinear
+    /// interpolation of the lattice misses the middle point by more than
+    /// [`APPROX_ERROR_PX`] pixel, or a corner does not project or lies
+    /// outside the bounding box, every point of the cell is projected
+    /// exactly. Rasters whose CRS is the surface's longitude/latitude are
+    /// mapped exactly (that is as cheap).
     pub fn pixels_of_grid(
         &self,
-        ll: &[(f64, f64)],
+        pts: &mut GridPoints<'_>,
         nx: usize,
         ny: usize,
         out: &mut Vec<(f64, f64)>,
     ) {
+        let exact = |pts: &mut GridPoints<'_>, k: usize| -> (f64, f64) {
+            let (la, lo) = pts.lat_lon(k);
+            if self.in_bbox(la, lo) {
+                self.pixel_of(la, lo)
+            } else {
+                (f64::NAN, f64::NAN)
+            }
+        };
         out.clear();
         if self.crs.is_identity() || nx < 3 || ny < 3 {
-            out.extend(ll.iter().map(|&(la, lo)| self.pixel_of(la, lo)));
+            out.extend((0..pts.len()).map(|k| exact(pts, k)));
             return;
         }
         out.resize(nx * ny, (f64::NAN, f64::NAN));
@@ -605,8 +660,7 @@ impl GeoTiff {
         let (xs, ys) = (lattice(nx), lattice(ny));
         for &y in &ys {
             for &x in &xs {
-                let (la, lo) = ll[y * nx + x];
-                out[y * nx + x] = self.pixel_of(la, lo);
+                out[y * nx + x] = exact(pts, y * nx + x);
             }
         }
         let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
@@ -628,11 +682,9 @@ impl GeoTiff {
                     (lerp(top.0, bot.0, fy), lerp(top.1, bot.1, fy))
                 };
                 let (mx, my) = ((x0 + x1) / 2, (y0 + y1) / 2);
-                let exact_mid = {
-                    let (la, lo) = ll[my * nx + mx];
-                    self.pixel_of(la, lo)
-                };
+                let exact_mid = exact(pts, my * nx + mx);
                 let guess = interp(mx, my);
+                // NaN (outside the box or the projection) fails these.
                 let good = k.iter().all(|c| c.0.is_finite() && c.1.is_finite())
                     && (guess.0 - exact_mid.0).abs() <= APPROX_ERROR_PX
                     && (guess.1 - exact_mid.1).abs() <= APPROX_ERROR_PX;
@@ -644,8 +696,7 @@ impl GeoTiff {
                         out[y * nx + x] = if good {
                             interp(x, y)
                         } else {
-                            let (la, lo) = ll[y * nx + x];
-                            self.pixel_of(la, lo)
+                            exact(pts, y * nx + x)
                         };
                     }
                 }
@@ -875,6 +926,39 @@ impl TiffReader<'_> {
             Chunk::Elev(v) => Ok(v.get(off).copied().unwrap_or(f32::NAN)),
             Chunk::Rgb(_) => Err(GeoError::UnsupportedSampleType {
                 path: self.tiff.path.clone(),
+                what: "colour raster used as elevation".into(),
+            }),
+        }
+    }
+
+    /// Pixels `(c0, r0)`, `(c0+1, r0)`, `(c0, r0+1)`, `(c0+1, r0+1)` (raw,
+    /// NaN for voids) when all four lie inside the raster and in one chunk;
+    /// `None` otherwise (read them one by one).
+    #[inline]
+    pub fn quad(&mut self, c0: i64, r0: i64) -> Result<Option<[f32; 4]>, GeoError> {
+        let t = self.tiff;
+        if c0 < 0 || r0 < 0 || c0 + 1 >= t.width as i64 || r0 + 1 >= t.height as i64 {
+            return Ok(None);
+        }
+        let (c0, r0) = (c0 as u32, r0 as u32);
+        let (cx, cy) = (c0 / t.chunk_w, r0 / t.chunk_h);
+        if (c0 + 1) / t.chunk_w != cx || (r0 + 1) / t.chunk_h != cy {
+            return Ok(None);
+        }
+        let (idx, off) = t.locate(c0, r0);
+        let data_w = t.chunk_w.min(t.width - cx * t.chunk_w) as usize;
+        match self.chunk(idx)? {
+            Chunk::Elev(v) => {
+                let at = |o: usize| v.get(o).copied().unwrap_or(f32::NAN);
+                Ok(Some([
+                    at(off),
+                    at(off + 1),
+                    at(off + data_w),
+                    at(off + data_w + 1),
+                ]))
+            }
+            Chunk::Rgb(_) => Err(GeoError::UnsupportedSampleType {
+                path: t.path.clone(),
                 what: "colour raster used as elevation".into(),
             }),
         }

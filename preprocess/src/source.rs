@@ -35,9 +35,9 @@
 use crate::build::GridSource;
 use crate::error::{BuildError, GeoError};
 use crate::geoid::{self, Egm96Grid, Egm96Reader, VerticalDatum};
-use crate::geotiff::{GeoTiff, TiffReader};
+use crate::geotiff::{GeoTiff, GridPoints, TiffReader};
 use parking_lot::Mutex;
-use planet_core::cube::{lat_lon_from_direction, normalize, plane_from_angle, sample_coord};
+use planet_core::cube::{normalize, plane_from_angle, sample_coord};
 use planet_core::lod::Rgb;
 use planet_core::{BlockId, Datum, FaceCoord};
 use std::collections::HashMap;
@@ -304,28 +304,34 @@ impl StackReader<'_> {
     }
 
     /// Elevations (m above the ellipsoid) of a row-major grid of `nx × ny`
-    /// points `(lat, lon)` degrees, as [`StackReader::sample`] at each, with
-    /// each layer's pixel coordinates from [`GeoTiff::pixels_of_grid`]
-    /// (computed for a layer only once a point needs it).
+    /// points, as [`StackReader::sample`] at each, with each layer's pixel
+    /// coordinates from [`GeoTiff::pixels_of_grid`] (computed for a layer
+    /// only once a point needs it).
     pub fn sample_grid(
         &mut self,
-        ll: &[(f64, f64)],
+        pts: &mut GridPoints<'_>,
         nx: usize,
         ny: usize,
         out: &mut [f64],
     ) -> Result<(), GeoError> {
         let n = self.layers.len();
         let mut px: Vec<Option<Vec<(f64, f64)>>> = vec![None; n];
-        for (k, &(lat, lon)) in ll.iter().enumerate() {
+        for k in 0..pts.len() {
             out[k] = 0.0;
             for idx in (0..n).rev() {
                 let grid = px[idx].get_or_insert_with(|| {
                     let mut v = Vec::new();
-                    self.layers[idx].tiff().pixels_of_grid(ll, nx, ny, &mut v);
+                    self.layers[idx].tiff().pixels_of_grid(pts, nx, ny, &mut v);
                     v
                 });
                 let (c, r) = grid[k];
-                if self.layers[idx].tiff().covers_at(lat, lon, c, r) {
+                if self.layers[idx].tiff().covers_pixel(c, r) {
+                    let (lat, lon) = if self.stack.layers[idx].vertical == VerticalDatum::Ellipsoid
+                    {
+                        (f64::NAN, f64::NAN)
+                    } else {
+                        pts.lat_lon(k)
+                    };
                     out[k] = self.sample_layer_at(idx, lat, lon, c, r)?;
                     break;
                 }
@@ -348,8 +354,19 @@ impl StackReader<'_> {
         let (fc, fr) = (c - c0, r - r0);
         let (c0, r0) = (c0 as i64, r0 as i64);
         let mut v = [0f64; 4];
-        for (k, (dc, dr)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
-            v[k] = self.pixel(idx, c0 + dc, r0 + dr)?;
+        // The 2 × 2 pixels from one chunk where they lie in one and hold no
+        // void; else pixel by pixel (wrapping, clamping, filling).
+        match self.layers[idx].quad(c0, r0)? {
+            Some(q) if q.iter().all(|x| !x.is_nan()) => {
+                for k in 0..4 {
+                    v[k] = q[k] as f64;
+                }
+            }
+            _ => {
+                for (k, (dc, dr)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
+                    v[k] = self.pixel(idx, c0 + dc, r0 + dr)?;
+                }
+            }
         }
         let top = v[0] + (v[1] - v[0]) * fc;
         let bot = v[2] + (v[3] - v[2]) * fc;
@@ -681,17 +698,17 @@ impl GridSource for RasterSource {
                 .collect()
         };
         let (us, vs) = (axis(b.x), axis(b.y));
-        let mut ll = Vec::with_capacity((w + 1) * (w + 1));
+        let mut dirs = Vec::with_capacity((w + 1) * (w + 1));
         for &v in &vs {
             for &u in &us {
-                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(u, v)));
-                ll.push((la.to_degrees(), lo.to_degrees()));
+                dirs.push(normalize(b.face.cube_point(u, v)));
             }
         }
-        let mut m = vec![0f64; ll.len()];
+        let mut pts = GridPoints::new(&dirs);
+        let mut m = vec![0f64; dirs.len()];
         self.elevation
             .reader()
-            .sample_grid(&ll, w + 1, w + 1, &mut m)?;
+            .sample_grid(&mut pts, w + 1, w + 1, &mut m)?;
         for (o, v) in out.iter_mut().zip(&m) {
             *o = quantise(*v, self.scale);
         }
@@ -710,19 +727,25 @@ impl GridSource for RasterSource {
                 .collect()
         };
         let (us, vs) = (axis(b.x), axis(b.y));
-        let mut ll = Vec::with_capacity(w * w);
+        let mut dirs = Vec::with_capacity(w * w);
         for &v in &vs {
             for &u in &us {
-                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(u, v)));
-                ll.push((la.to_degrees(), lo.to_degrees()));
+                dirs.push(normalize(b.face.cube_point(u, v)));
             }
         }
         let mut px = Vec::new();
-        c.tiff.pixels_of_grid(&ll, w, w, &mut px);
+        let mut pts = GridPoints::new(&dirs);
+        c.tiff.pixels_of_grid(&mut pts, w, w, &mut px);
         let mut rd = c.tiff.reader();
         let mut out = Vec::with_capacity(w * w);
-        for &(col, row) in &px {
-            out.push(ColourSource::sample_px(&mut rd, col, row)?);
+        for (k, &(col, row)) in px.iter().enumerate() {
+            out.push(if col.is_finite() {
+                ColourSource::sample_px(&mut rd, col, row)?
+            } else {
+                // Outside the raster's box: its nearest edge, as before.
+                let (la, lo) = pts.lat_lon(k);
+                ColourSource::sample_with(&mut rd, la, lo)?
+            });
         }
         Ok(out)
     }

@@ -26,7 +26,7 @@
 
 use planet_preprocess::db::Sampler;
 use planet_preprocess::geoid::{Egm96Grid, VerticalDatum};
-use planet_preprocess::geotiff::GeoTiff;
+use planet_preprocess::geotiff::{GeoTiff, GridPoints};
 use planet_preprocess::source::ElevationStack;
 use planet_preprocess::{build_rasters, RasterOptions};
 use rand::{Rng, SeedableRng};
@@ -549,5 +549,44 @@ fn projection_families_map_like_proj() {
             t.crs
         );
         assert!(t.covers(0.5 * (la0 + la1), 0.5 * (lo0 + lo1)), "{name}");
+        // The approximate grid mapping (gdalwarp's -et 0.125) stays within
+        // 0.125 pixel of the exact one, on a 65 × 65 grid over the tile
+        // and a margin around it (points outside the box map to NaN).
+        let n = 65;
+        let (m_la, m_lo) = (0.2 * (la1 - la0), 0.2 * (lo1 - lo0));
+        let ll: Vec<(f64, f64)> = (0..n * n)
+            .map(|k| {
+                let (i, j) = ((k % n) as f64 / 64.0, (k / n) as f64 / 64.0);
+                (
+                    la1 + m_la - (la1 - la0 + 2.0 * m_la) * j,
+                    lo0 - m_lo + (lo1 - lo0 + 2.0 * m_lo) * i,
+                )
+            })
+            .collect();
+        let dirs: Vec<[f64; 3]> = ll
+            .iter()
+            .map(|&(la, lo)| {
+                planet_core::cube::direction_from_lat_lon(la.to_radians(), lo.to_radians())
+            })
+            .collect();
+        let mut approx = Vec::new();
+        t.pixels_of_grid(&mut GridPoints::new(&dirs), n, n, &mut approx);
+        let (mut worst_approx, mut inside): (f64, usize) = (0.0, 0);
+        for (&(la, lo), a) in ll.iter().zip(&approx) {
+            let e = t.pixel_of(la, lo);
+            if t.covers(la, lo) {
+                inside += 1;
+                assert!(
+                    t.covers_pixel(a.0, a.1) || (e.0 - a.0).abs().max((e.1 - a.1).abs()) < 0.2,
+                    "{name}: covered point {la} {lo} lost"
+                );
+                worst_approx = worst_approx.max((e.0 - a.0).abs()).max((e.1 - a.1).abs());
+            }
+        }
+        assert!(inside > 1000, "{name}: {inside}");
+        assert!(
+            worst_approx <= 0.125,
+            "{name}: approximate mapping off by {worst_approx} px"
+        );
     }
 }
