@@ -47,10 +47,11 @@ pub struct RasterOptions {
     pub threads: Option<usize>,
     /// Hide progress bars.
     pub quiet: bool,
-    /// The vertical datum of the elevation inputs' heights; `None`: what
+    /// The vertical datum of the elevation inputs' heights: empty, what
     /// each file declares, else EGM96 for int16 geographic DEMs
-    /// ([`source::vertical_datum_of`]).
-    pub vertical: Option<geoid::VerticalDatum>,
+    /// ([`source::vertical_datum_of`]); one, every input's; one per input,
+    /// in the order given.
+    pub vertical: Vec<geoid::VerticalDatum>,
 }
 
 impl Default for RasterOptions {
@@ -60,7 +61,7 @@ impl Default for RasterOptions {
             max_memory_mb: 1024,
             threads: None,
             quiet: true,
-            vertical: None,
+            vertical: Vec::new(),
         }
     }
 }
@@ -82,12 +83,19 @@ pub fn open_rasters_noting(
                                                      // EGM96's synthesis memory (its coefficient table, paged in, and one
                                                      // scratch per worker) comes out of the raster caches' half when an
                                                      // input may need it.
-    if opts.vertical.is_none() || opts.vertical == Some(geoid::VerticalDatum::Egm96) {
+    if !(opts.vertical.len() <= 1 || opts.vertical.len() == elevation.len()) {
+        return Err(BuildError::Options(format!(
+            "{} vertical datums for {} elevation inputs (give one, or one per input)",
+            opts.vertical.len(),
+            elevation.len()
+        )));
+    }
+    if opts.vertical.is_empty() || opts.vertical.contains(&geoid::VerticalDatum::Egm96) {
         let threads = opts.threads.unwrap_or_else(rayon::current_num_threads);
         let geoid = geoid::EGM96_FIXED_BYTES + threads * geoid::EGM96_THREAD_BYTES;
         cache = cache.saturating_sub(geoid).max(cache / 4);
     }
-    let stack = source::ElevationStack::open_with(elevation, cache * 3 / 4, opts.vertical, note)?;
+    let stack = source::ElevationStack::open_with(elevation, cache * 3 / 4, &opts.vertical, note)?;
     let colour = match colour {
         Some(p) => Some(source::ColourSource::open(p, cache / 4)?),
         None => None,

@@ -32,11 +32,12 @@ enum Cmd {
         #[arg(long)]
         colour: Option<PathBuf>,
         /// Vertical datum of the elevation inputs' heights, converted to
-        /// heights above the ellipsoid: egm96, egm2008 or ellipsoid.
+        /// heights above the ellipsoid: egm96, egm2008 or ellipsoid; one
+        /// for every input, or one per input in --elevation's order.
         /// Default: what each file declares, else EGM96 for int16
         /// geographic DEMs (said on stderr), else ellipsoid.
-        #[arg(long, value_name = "egm96|egm2008|ellipsoid")]
-        vertical_datum: Option<planet_preprocess::geoid::VerticalDatum>,
+        #[arg(long, num_args = 1.., value_name = "egm96|egm2008|ellipsoid")]
+        vertical_datum: Vec<planet_preprocess::geoid::VerticalDatum>,
         /// Build a procedural planet instead.
         #[arg(long, conflicts_with_all = ["elevation", "colour"])]
         procedural: bool,
@@ -177,7 +178,7 @@ fn run() -> Result<()> {
                 if elevation.is_empty() && colour.is_none() {
                     bail!("give --elevation FILE..., --colour FILE or --procedural");
                 }
-                if vertical_datum == Some(planet_preprocess::geoid::VerticalDatum::Egm2008) {
+                if vertical_datum.contains(&planet_preprocess::geoid::VerticalDatum::Egm2008) {
                     eprintln!(
                         "note: EGM2008 undulations come from the egm2008 crate's 3° grid \
                          (metre-level accuracy)"

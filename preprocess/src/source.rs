@@ -161,26 +161,26 @@ impl ElevationStack {
     /// Open elevation rasters, heights kept as they are (no vertical datum
     /// conversion); the cache bound is shared between them.
     pub fn open(paths: &[&Path], cache_bytes: usize) -> Result<ElevationStack, GeoError> {
-        ElevationStack::open_with(
-            paths,
-            cache_bytes,
-            Some(VerticalDatum::Ellipsoid),
-            &mut |_| {},
-        )
+        ElevationStack::open_with(paths, cache_bytes, &[VerticalDatum::Ellipsoid], &mut |_| {})
     }
 
-    /// Open elevation rasters whose heights are in `vertical` (`None`: per
-    /// file, see [`vertical_datum_of`]); `note` receives one line per file
-    /// whose vertical datum was not given.
+    /// Open elevation rasters whose heights are in `vertical` (empty: per
+    /// file, see [`vertical_datum_of`]; one: all; else the i-th input's);
+    /// `note` receives one line per file whose vertical datum was not given.
     pub fn open_with(
         paths: &[&Path],
         cache_bytes: usize,
-        vertical: Option<VerticalDatum>,
+        vertical: &[VerticalDatum],
         note: &mut dyn FnMut(String),
     ) -> Result<ElevationStack, GeoError> {
         let per = (cache_bytes / paths.len().max(1)).max(1 << 20);
         let mut layers = Vec::new();
-        for p in paths {
+        for (i, p) in paths.iter().enumerate() {
+            let vertical = match vertical {
+                [] => None,
+                [one] => Some(*one),
+                many => many.get(i).copied(),
+            };
             let tiff = GeoTiff::open(p, per)?;
             if !tiff.kind.is_elevation() {
                 return Err(GeoError::Role {

@@ -213,7 +213,7 @@ fn utm_and_polar_stereographic_tiles_build_and_agree_with_the_source() {
             None,
             &db,
             &RasterOptions {
-                vertical: Some(VerticalDatum::Ellipsoid),
+                vertical: vec![VerticalDatum::Ellipsoid],
                 ..Default::default()
             },
         )
@@ -308,6 +308,42 @@ fn srtm_hgt_reads_like_its_geotiff_and_converts_egm96() {
             "{la} {lo}: {last} vs {want} (bound {bound})"
         );
     }
+    // One vertical datum per input, in order; a count that fits neither
+    // one nor every input is refused.
+    let both = ElevationStack::open_with(
+        &[hgt.as_path(), rainier.as_path()],
+        64 << 20,
+        &[VerticalDatum::Ellipsoid, VerticalDatum::Egm2008],
+        &mut |_| {},
+    )
+    .unwrap();
+    let mut got: Vec<(String, VerticalDatum)> = both
+        .layers
+        .iter()
+        .map(|l| (l.tiff.path().display().to_string(), l.vertical))
+        .collect();
+    got.sort_by(|a, b| a.0.cmp(&b.0));
+    assert!(got
+        .iter()
+        .any(|(p, v)| p.ends_with(".hgt") && *v == VerticalDatum::Ellipsoid));
+    assert!(got
+        .iter()
+        .any(|(p, v)| p.ends_with(".tif") && *v == VerticalDatum::Egm2008));
+    let e = build_rasters(
+        &[hgt.as_path()],
+        None,
+        &dir.path().join("x.db"),
+        &RasterOptions {
+            vertical: vec![VerticalDatum::Egm96, VerticalDatum::Egm96],
+            ..Default::default()
+        },
+    )
+    .expect_err("two datums for one input refused")
+    .to_string();
+    assert!(
+        e.contains("2 vertical datums for 1 elevation inputs"),
+        "{e}"
+    );
     // Truncated and misnamed files are refused, naming the file.
     let bad = dir.path().join("N46W123.hgt");
     std::fs::write(&bad, vec![0u8; 1000]).unwrap();

@@ -45,7 +45,7 @@ fn real_planet_with_insets() {
             // Heights kept as the files have them (orthometric): this test
             // compares the database with the source pixels themselves; the
             // EGM96 conversion is tested in tests/vertical.rs.
-            vertical: Some(planet_preprocess::geoid::VerticalDatum::Ellipsoid),
+            vertical: vec![planet_preprocess::geoid::VerticalDatum::Ellipsoid],
             ..Default::default()
         },
     )
