@@ -49,6 +49,7 @@ enum Command {
 }
 
 fn main() -> Result<()> {
+    planet_core::pipe::exit_quietly_on_broken_pipe();
     let cli = Cli::parse();
     match cli.command {
         Command::Flight(a) => flight::run(a),

@@ -102,6 +102,102 @@ impl Datum {
     }
 }
 
+/// A body a datum's semi-axes identify (IAU WGCCRE 2015 radii for the
+/// planets and the Moon). Used to name a database's datum and to tell Earth
+/// CRSs (shifted to WGS84) from other bodies' (kept as they are).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Body {
+    /// The Earth: any of its reference ellipsoids (equatorial radius within
+    /// 6 377 km .. 6 379 km: Bessel, Clarke, GRS80, WGS84, International…),
+    /// or a sphere of 6 371 km .. 6 379 km.
+    Earth,
+    /// The Moon (mean radius 1 737.4 km).
+    Moon,
+    /// Mars (3 396.19 km equatorial, 3 376.2 km polar).
+    Mars,
+    /// Mercury (2 440.53 km).
+    Mercury,
+    /// Venus (6 051.8 km).
+    Venus,
+}
+
+impl Body {
+    /// The body whose reference radius is within 0.5 % of `a` (Earth: see
+    /// [`Body::Earth`]), if any.
+    pub fn of_axes(a: f64, b: f64) -> Option<Body> {
+        if (6_377_000.0..=6_379_000.0).contains(&a)
+            || (a == b && (6_371_000.0..=6_379_000.0).contains(&a))
+        {
+            return Some(Body::Earth);
+        }
+        let near = |r: f64| (a - r).abs() <= 0.005 * r;
+        [
+            (Body::Moon, 1_737_400.0),
+            (Body::Mars, 3_396_190.0),
+            (Body::Mercury, 2_440_530.0),
+            (Body::Venus, 6_051_800.0),
+        ]
+        .into_iter()
+        .find(|&(_, r)| near(r))
+        .map(|(body, _)| body)
+    }
+
+    /// The body's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Body::Earth => "Earth",
+            Body::Moon => "Moon",
+            Body::Mars => "Mars",
+            Body::Mercury => "Mercury",
+            Body::Venus => "Venus",
+        }
+    }
+}
+
+impl Datum {
+    /// The datum of semi-axes `a ≥ b` (metres): a sphere where they are
+    /// equal, else an ellipsoid.
+    pub fn from_axes(a: f64, b: f64) -> Datum {
+        if a == b {
+            Datum::Sphere { radius: a }
+        } else {
+            Datum::Ellipsoid {
+                a,
+                e2: 1.0 - (b / a) * (b / a),
+            }
+        }
+    }
+
+    /// Inverse flattening `1/f = a / (a − b)`; `None` for a sphere.
+    pub fn inverse_flattening(&self) -> Option<f64> {
+        let (a, b) = (self.equatorial_radius(), self.polar_radius());
+        (a != b).then(|| a / (a - b))
+    }
+
+    /// The body this datum is a reference surface of, where known.
+    pub fn body(&self) -> Option<Body> {
+        Body::of_axes(self.equatorial_radius(), self.polar_radius())
+    }
+
+    /// A name: `WGS84`, `GRS80`, `Moon sphere`, … or `None`.
+    pub fn name(&self) -> Option<String> {
+        let a = self.equatorial_radius();
+        if let Some(rf) = self.inverse_flattening() {
+            if a == 6_378_137.0 && (rf - 298.257_223_563).abs() < 1e-6 {
+                return Some("WGS84".into());
+            }
+            if a == 6_378_137.0 && (rf - 298.257_222_101).abs() < 1e-6 {
+                return Some("GRS80".into());
+            }
+        }
+        let kind = match self {
+            Datum::Sphere { .. } => "sphere",
+            Datum::Ellipsoid { .. } => "ellipsoid",
+        };
+        self.body().map(|b| format!("{} {kind}", b.name()))
+    }
+}
+
 /// WGS84 first eccentricity squared, `f·(2 − f)` with `f = 1/298.257223563`.
 pub const WGS84_E2: f64 = (1.0 / 298.257_223_563) * (2.0 - 1.0 / 298.257_223_563);
 
@@ -156,5 +252,33 @@ mod tests {
         .is_valid());
         assert!(!Datum::Sphere { radius: 1e39 }.is_valid());
         assert!(!Datum::Ellipsoid { a: 1.0, e2: 1.0 }.is_valid());
+    }
+
+    #[test]
+    fn bodies_and_names() {
+        assert_eq!(Datum::WGS84.body(), Some(Body::Earth));
+        assert_eq!(Datum::WGS84.name().as_deref(), Some("WGS84"));
+        let rf = Datum::WGS84.inverse_flattening().unwrap_or(0.0);
+        assert!((rf - 298.257_223_563).abs() < 1e-6, "{rf}");
+        let grs80 = Datum::from_axes(6_378_137.0, 6_378_137.0 * (1.0 - 1.0 / 298.257_222_101));
+        assert_eq!(grs80.name().as_deref(), Some("GRS80"));
+        let moon = Datum::from_axes(1_737_400.0, 1_737_400.0);
+        assert_eq!(
+            moon,
+            Datum::Sphere {
+                radius: 1_737_400.0
+            }
+        );
+        assert_eq!(moon.body(), Some(Body::Moon));
+        assert_eq!(moon.inverse_flattening(), None);
+        assert_eq!(moon.name().as_deref(), Some("Moon sphere"));
+        let mars = Datum::from_axes(3_396_190.0, 3_376_200.0);
+        assert_eq!(mars.body(), Some(Body::Mars));
+        assert!((mars.polar_radius() - 3_376_200.0).abs() < 1e-6);
+        assert_eq!(Datum::Sphere { radius: 1000.0 }.body(), None);
+        assert_eq!(
+            Body::of_axes(6_377_397.155, 6_356_078.963),
+            Some(Body::Earth)
+        );
     }
 }

@@ -626,6 +626,12 @@ pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, F
 
 /// Writes a database linearly under a temporary name; [`DbWriter::finish`]
 /// appends the header, writes the superblock last, syncs and renames.
+///
+/// The temporary name is unique (`DEST.PID.N.tmp`, created exclusively), so
+/// two builds of the same output never write one file; the last to finish
+/// wins whole. `finish` removes the temporary on error and, after the
+/// rename, syncs the directory so the new name survives a crash. A killed
+/// build leaves the old output intact (only a stray temporary).
 pub struct DbWriter {
     file: BufWriter<File>,
     tmp: PathBuf,
@@ -633,20 +639,40 @@ pub struct DbWriter {
     pos: u64,
 }
 
+/// Writers created by this process (part of the temporary names).
+static WRITERS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
 impl DbWriter {
-    /// Start writing `dest` (as `dest.tmp` until finished).
+    /// Start writing `dest` (under a unique temporary name until finished).
     pub fn create(dest: &Path) -> io::Result<DbWriter> {
-        let mut tmp = dest.as_os_str().to_owned();
-        tmp.push(".tmp");
-        let tmp = PathBuf::from(tmp);
-        let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
-        file.write_all(&[0u8; SUPERBLOCK_LEN])?;
+        let (tmp, f) = loop {
+            let n = WRITERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let mut tmp = dest.as_os_str().to_owned();
+            tmp.push(format!(".{}.{n}.tmp", std::process::id()));
+            let tmp = PathBuf::from(tmp);
+            match File::options().write(true).create_new(true).open(&tmp) {
+                Ok(f) => break (tmp, f),
+                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
+                Err(e) => return Err(e),
+            }
+        };
+        let mut file = BufWriter::with_capacity(1 << 20, f);
+        if let Err(e) = file.write_all(&[0u8; SUPERBLOCK_LEN]) {
+            drop(file);
+            let _ = std::fs::remove_file(&tmp);
+            return Err(e);
+        }
         Ok(DbWriter {
             file,
             tmp,
             dest: dest.to_path_buf(),
             pos: SUPERBLOCK_LEN as u64,
         })
+    }
+
+    /// The temporary file being written.
+    pub fn temporary_path(&self) -> &Path {
+        &self.tmp
     }
 
     /// Bytes written so far.
@@ -662,9 +688,19 @@ impl DbWriter {
         Ok((at, record.len() as u32))
     }
 
-    /// Append the header, write the superblock, sync and rename into place.
-    /// Returns the final file length.
-    pub fn finish(mut self, header: &Header) -> io::Result<u64> {
+    /// Append the header, write the superblock, sync and rename into place,
+    /// then sync the directory. Returns the final file length. On error the
+    /// temporary is removed.
+    pub fn finish(self, header: &Header) -> io::Result<u64> {
+        let tmp = self.tmp.clone();
+        let r = self.finish_inner(header);
+        if r.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        r
+    }
+
+    fn finish_inner(mut self, header: &Header) -> io::Result<u64> {
         let h = header.encode();
         let header_offset = self.pos;
         self.file.write_all(&h)?;
@@ -682,6 +718,15 @@ impl DbWriter {
         f.sync_all()?;
         drop(f);
         std::fs::rename(&self.tmp, &self.dest)?;
+        // The rename is durable once the directory is synced (POSIX).
+        #[cfg(unix)]
+        {
+            let dir = match self.dest.parent() {
+                Some(d) if !d.as_os_str().is_empty() => d,
+                _ => Path::new("."),
+            };
+            File::open(dir)?.sync_all()?;
+        }
         Ok(file_len)
     }
 

@@ -27,6 +27,7 @@ pub mod cube;
 pub mod datum;
 pub mod format;
 pub mod lod;
+pub mod pipe;
 
 pub use block::{BlockId, Edge};
 pub use cube::{Face, FaceCoord};

@@ -408,15 +408,10 @@ fn build_inner(
         path: out.to_path_buf(),
         msg: "writer lost".into(),
     })?;
-    let file_bytes = match writer.finish(&header) {
-        Ok(n) => n,
-        Err(e) => {
-            let mut tmp = out.as_os_str().to_owned();
-            tmp.push(".tmp");
-            let _ = std::fs::remove_file(tmp);
-            return Err(BuildError::write(out, e));
-        }
-    };
+    // `finish` removes its temporary on error.
+    let file_bytes = writer
+        .finish(&header)
+        .map_err(|e| BuildError::write(out, e))?;
     let er = ctx.e_records.load(Ordering::Relaxed);
     let cr = ctx.c_records.load(Ordering::Relaxed);
     let ehalf = (EW / 2 + 1) as u64;

@@ -274,13 +274,65 @@ pub struct TreeStats {
     pub compression_ratio: f64,
 }
 
+/// The datum of a database, as fields.
+#[derive(Debug, Clone, Serialize)]
+pub struct DatumReport {
+    /// `sphere` or `ellipsoid`.
+    pub kind: &'static str,
+    /// Equatorial radius `a`, metres.
+    pub semi_major_axis_m: f64,
+    /// Polar radius `b`, metres.
+    pub semi_minor_axis_m: f64,
+    /// `a / (a − b)`; null for a sphere.
+    pub inverse_flattening: Option<f64>,
+    /// First eccentricity squared (0 for a sphere).
+    pub e2: f64,
+    /// The body, where the axes identify one (Earth, Moon, Mars, …).
+    pub body: Option<&'static str>,
+    /// A name (WGS84, GRS80, Moon sphere, …) where known.
+    pub name: Option<String>,
+}
+
+impl From<planet_core::Datum> for DatumReport {
+    fn from(d: planet_core::Datum) -> DatumReport {
+        DatumReport {
+            kind: match d {
+                planet_core::Datum::Sphere { .. } => "sphere",
+                planet_core::Datum::Ellipsoid { .. } => "ellipsoid",
+            },
+            semi_major_axis_m: d.equatorial_radius(),
+            semi_minor_axis_m: d.polar_radius(),
+            inverse_flattening: d.inverse_flattening(),
+            e2: d.e2(),
+            body: d.body().map(|b| b.name()),
+            name: d.name(),
+        }
+    }
+}
+
+impl std::fmt::Display for DatumReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} ({}), a = {} m",
+            self.name.as_deref().unwrap_or(self.kind),
+            self.body.unwrap_or("unknown body"),
+            self.semi_major_axis_m
+        )?;
+        match self.inverse_flattening {
+            Some(rf) => write!(f, ", 1/f = {rf}"),
+            None => Ok(()),
+        }
+    }
+}
+
 /// What `inspect` reports.
 #[derive(Debug, Clone, Serialize)]
 pub struct InspectReport {
     /// File length.
     pub file_bytes: u64,
-    /// Datum description.
-    pub datum: String,
+    /// The datum.
+    pub datum: DatumReport,
     /// Metres per stored unit.
     pub elevation_scale: f32,
     /// Offset in metres.
@@ -365,7 +417,7 @@ pub fn inspect(path: &Path) -> Result<InspectReport, DbError> {
     let [et, ct] = trees;
     Ok(InspectReport {
         file_bytes: db.superblock.file_len,
-        datum: format!("{:?}", h.datum),
+        datum: h.datum.into(),
         elevation_scale: h.elevation_scale,
         elevation_offset: h.elevation_offset,
         min_elevation: h.min_elevation,
@@ -399,6 +451,33 @@ impl Sampler {
     /// The header.
     pub fn header(&self) -> &Header {
         &self.db.header
+    }
+
+    /// The vertical datum the database's elevation sources were in, from
+    /// its description ([`crate::source::VERTICAL_TOKEN`]); `None` where it
+    /// names none (procedural databases, ellipsoidal heights) or a mix.
+    pub fn vertical_datum(&self) -> Option<crate::geoid::VerticalDatum> {
+        let d = &self.db.header.description;
+        let at = d.find(crate::source::VERTICAL_TOKEN)? + crate::source::VERTICAL_TOKEN.len();
+        let word: String = d[at..]
+            .chars()
+            .take_while(|c| c.is_ascii_alphanumeric())
+            .collect();
+        word.parse().ok()
+    }
+
+    /// A height above the ellipsoid at (lat, lon) degrees expressed in
+    /// vertical datum `v` (`h − N`, EGM96 on its 15′ nodes).
+    pub fn in_vertical_datum(
+        &self,
+        lat: f64,
+        lon: f64,
+        h: f64,
+        v: crate::geoid::VerticalDatum,
+    ) -> f64 {
+        let g = crate::geoid::Egm96Grid::new();
+        let mut r = g.reader();
+        h - crate::geoid::undulation(v, &mut r, lat, lon, crate::geoid::FINEST_SPACING)
     }
 
     /// Elevation at (lat, lon) in degrees: descend to the leaf containing the

@@ -23,8 +23,8 @@ pub enum GeoError {
         /// The decoder's message.
         msg: String,
     },
-    /// The raster is not geographic WGS84 (EPSG:4326).
-    #[error("{path}: wrong CRS: {what}; only geographic EPSG:4326 is supported")]
+    /// The raster's CRS cannot be read or used.
+    #[error("{path}: unsupported CRS: {what}")]
     WrongCrs {
         /// The file.
         path: PathBuf,
@@ -46,6 +46,18 @@ pub enum GeoError {
         path: PathBuf,
         /// What is wrong.
         what: String,
+    },
+    /// Two inputs lie on different bodies or datums.
+    #[error("{first} is on {first_datum} but {second} is on {second_datum}: one build takes inputs on one surface")]
+    MixedDatums {
+        /// The first input.
+        first: PathBuf,
+        /// Its surface.
+        first_datum: String,
+        /// The input that differs.
+        second: PathBuf,
+        /// Its surface.
+        second_datum: String,
     },
     /// An elevation source was given where colour is needed or vice versa.
     #[error("{path}: {what}")]

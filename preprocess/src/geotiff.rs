@@ -1,4 +1,5 @@
-//! GeoTIFF (EPSG:4326) rasters read by strips or tiles on demand.
+//! Rasters (GeoTIFF in any CRS [`crate::crs`] reads, SRTM `.hgt`) read by
+//! strips, tiles or row blocks on demand.
 //!
 //! The input side of thesis §5.1–5.2 (thesis-notes §9.7): the thesis reads a
 //! "dually tiled map format" whose rectangular windows are loaded on demand;
@@ -7,15 +8,18 @@
 //! is never loaded whole.
 //!
 //! Georeferencing: ModelPixelScale (33550), ModelTiepoint (33922), the
-//! GeoKeyDirectory (34735: GTModelType must be 2 = geographic, GeographicType
-//! 4326 or absent; GTRasterType 1 = pixel-is-area, the value of a pixel is at
-//! its centre, 2 = pixel-is-point) and GDAL_NODATA (42113, ASCII).
+//! GeoKeyDirectory (34735, with its doubles 34736: the CRS, see
+//! [`crate::crs`]; GTRasterType 1 = pixel-is-area, the value of a pixel is
+//! at its centre, 2 = pixel-is-point) and GDAL_NODATA (42113, ASCII).
+//! SRTM `.hgt` files carry their georeferencing in their name and length.
 
+use crate::crs::{Crs, GeoKeys};
 use crate::error::GeoError;
+use crate::geoid::VerticalDatum;
 use parking_lot::Mutex;
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::BufReader;
+use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tiff::decoder::{Decoder, DecodingResult, Limits};
@@ -84,7 +88,20 @@ struct Cache {
     bytes: usize,
 }
 
-/// A georeferenced raster in geographic coordinates (degrees).
+/// How a raster's chunks are read.
+enum Backend {
+    /// TIFF strips or tiles. Idle decoders: a worker takes one (or opens a
+    /// new one) to decode a chunk, so several chunks decode in parallel.
+    Tiff(Mutex<Vec<Decoder<BufReader<File>>>>),
+    /// An SRTM `.hgt` file: big-endian int16, row-major, chunks of rows.
+    Hgt(Mutex<File>),
+}
+
+/// A georeferenced raster (GeoTIFF or SRTM `.hgt`) in any CRS [`Crs`] reads.
+///
+/// Pixel `(col, row)`'s value is at CRS coordinates
+/// `(x0 + col·dx, y0 − row·dy)`: longitude/latitude in degrees for a
+/// geographic CRS, easting/northing in the CRS's unit for a projected one.
 pub struct GeoTiff {
     path: PathBuf,
     /// Columns.
@@ -93,24 +110,35 @@ pub struct GeoTiff {
     pub height: u32,
     /// Sample type.
     pub kind: SampleKind,
-    /// Longitude (degrees) of the value of pixel column 0.
-    pub lon0: f64,
-    /// Latitude (degrees) of the value of pixel row 0.
-    pub lat0: f64,
-    /// Degrees of longitude per column.
+    /// CRS x (longitude or easting) of the value of pixel column 0.
+    pub x0: f64,
+    /// CRS y (latitude or northing) of the value of pixel row 0.
+    pub y0: f64,
+    /// CRS x units per column.
     pub dx: f64,
-    /// Degrees of latitude per row (positive: rows go south).
+    /// CRS y units per row (positive: rows go south).
     pub dy: f64,
     /// The GDAL no-data value, if any.
     pub nodata: Option<f64>,
     /// Whether the raster is pixel-is-point (else pixel-is-area).
     pub pixel_is_point: bool,
+    /// The raster's CRS and the surface it maps to.
+    pub crs: Crs,
+    /// The vertical datum the file declares (GeoKeys; EGM96 for `.hgt`).
+    pub vertical: Option<VerticalDatum>,
+    /// Bounding box `(lat_min, lat_max, lon_min, lon_max)` of the pixel values.
+    bbox: (f64, f64, f64, f64),
+    /// Ground distance between neighbouring pixels at the raster's centre, m.
+    spacing_m: f64,
+    /// Projected elevation rasters: per row, the first and last column
+    /// holding a value. No-data before and after them is outside the
+    /// re-projected footprint (the corners `gdalwarp` pads), not a void to
+    /// fill: points there are not covered.
+    spans: Option<Vec<(u32, u32)>>,
     chunk_w: u32,
     chunk_h: u32,
     chunks_across: u32,
-    /// Idle decoders: a worker takes one (or opens a new one) to decode a
-    /// chunk, so several chunks decode in parallel.
-    decoders: Mutex<Vec<Decoder<BufReader<File>>>>,
+    backend: Backend,
     cache: Mutex<Cache>,
     cache_bytes: usize,
 }
@@ -122,17 +150,79 @@ fn terr(path: &Path, e: impl std::fmt::Display) -> GeoError {
     }
 }
 
+/// The points of a sampling grid as unit directions (planet space), with
+/// their latitude/longitude (degrees) computed only where asked (two
+/// `atan2` per point were a third of a projected build's time).
+pub struct GridPoints<'a> {
+    dirs: &'a [[f64; 3]],
+    ll: Vec<(f64, f64)>,
+}
+
+impl<'a> GridPoints<'a> {
+    /// Points at these unit directions.
+    pub fn new(dirs: &'a [[f64; 3]]) -> GridPoints<'a> {
+        GridPoints {
+            dirs,
+            ll: vec![(f64::NAN, f64::NAN); dirs.len()],
+        }
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.dirs.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.dirs.is_empty()
+    }
+
+    /// Latitude and longitude (degrees) of point `k`.
+    #[inline]
+    pub fn lat_lon(&mut self, k: usize) -> (f64, f64) {
+        let e = &mut self.ll[k];
+        if e.0.is_nan() {
+            let (la, lo) = planet_core::cube::lat_lon_from_direction(self.dirs[k]);
+            *e = (la.to_degrees(), lo.to_degrees());
+        }
+        *e
+    }
+}
+
+/// Lattice step of [`GeoTiff::pixels_of_grid`], in grid points.
+pub const APPROX_STEP: usize = 8;
+/// Largest interpolation error [`GeoTiff::pixels_of_grid`] accepts, pixels
+/// (gdalwarp's default `-et`).
+pub const APPROX_ERROR_PX: f64 = 0.125;
+
+/// Rows per chunk of an `.hgt` file.
+const HGT_CHUNK_ROWS: u32 = 64;
+
+/// Tag limits of the TIFF decoder: the `tiff` crate's defaults (256 MiB of
+/// decoded chunk, 128 MiB intermediate, 1 MiB per tag value), so a crafted
+/// header cannot make a read allocate without bound.
+fn limits() -> Limits {
+    Limits::default()
+}
+
 impl GeoTiff {
-    /// Open a GeoTIFF and read its georeferencing; `cache_bytes` bounds the
+    /// Open a raster and read its georeferencing; `cache_bytes` bounds the
     /// decoded strips/tiles kept in memory (at least one chunk is kept).
+    /// Files named `*.hgt` are read as SRTM height files, others as TIFF.
     pub fn open(path: &Path, cache_bytes: usize) -> Result<GeoTiff, GeoError> {
+        let is_hgt = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("hgt"));
+        if is_hgt {
+            return GeoTiff::open_hgt(path, cache_bytes);
+        }
         let file = File::open(path).map_err(|e| GeoError::Open {
             path: path.to_path_buf(),
             source: e,
         })?;
         let mut dec = Decoder::new(BufReader::new(file))
             .map_err(|e| terr(path, e))?
-            .with_limits(Limits::unlimited());
+            .with_limits(limits());
         let (width, height) = dec.dimensions().map_err(|e| terr(path, e))?;
         let ct = dec.colortype().map_err(|e| terr(path, e))?;
         let fmt = dec
@@ -163,44 +253,25 @@ impl GeoTiff {
         let tie = dec
             .get_tag_f64_vec(Tag::ModelTiepointTag)
             .map_err(|_| missing("no ModelTiepoint tag (33922)"))?;
-        if scale.len() < 2 || tie.len() < 6 || !(scale[0] > 0.0 && scale[1] > 0.0) {
+        if scale.len() < 2
+            || tie.len() < 6
+            || !(scale[0] > 0.0 && scale[1] > 0.0 && scale[0].is_finite() && scale[1].is_finite())
+            || !tie.iter().all(|v| v.is_finite())
+        {
             return Err(missing("malformed pixel scale or tie point"));
         }
-        let mut pixel_is_point = false;
-        if let Ok(keys) = dec.get_tag_u16_vec(Tag::GeoKeyDirectoryTag) {
-            let n = keys.get(3).copied().unwrap_or(0) as usize;
-            for k in 0..n {
-                let Some(e) = keys.get(4 + 4 * k..8 + 4 * k) else {
-                    break;
-                };
-                let (id, loc, val) = (e[0], e[1], e[3]);
-                if loc != 0 {
-                    continue;
-                }
-                match id {
-                    1024 if val != 2 => {
-                        return Err(GeoError::WrongCrs {
-                            path: path.to_path_buf(),
-                            what: format!("GTModelType {val} (need 2, geographic)"),
-                        })
-                    }
-                    1025 => pixel_is_point = val == 2,
-                    2048 if val != 4326 => {
-                        return Err(GeoError::WrongCrs {
-                            path: path.to_path_buf(),
-                            what: format!("GeographicType {val} (need 4326)"),
-                        })
-                    }
-                    3072 => {
-                        return Err(GeoError::WrongCrs {
-                            path: path.to_path_buf(),
-                            what: format!("projected CRS {val}"),
-                        })
-                    }
-                    _ => {}
-                }
-            }
-        }
+        let dir = dec
+            .get_tag_u16_vec(Tag::GeoKeyDirectoryTag)
+            .unwrap_or_default();
+        let doubles = dec
+            .get_tag_f64_vec(Tag::GeoDoubleParamsTag)
+            .unwrap_or_default();
+        let keys = GeoKeys::parse(&dir, &doubles);
+        let crs = Crs::from_geokeys(&keys).map_err(|what| GeoError::WrongCrs {
+            path: path.to_path_buf(),
+            what,
+        })?;
+        let pixel_is_point = keys.pixel_is_point();
         let nodata = dec
             .get_tag_ascii_string(Tag::GdalNodata)
             .ok()
@@ -211,35 +282,241 @@ impl GeoTiff {
             });
         let (dx, dy) = (scale[0], scale[1]);
         let a = if pixel_is_point { 0.0 } else { 0.5 };
-        let lon0 = tie[3] + (a - tie[0]) * dx;
-        let lat0 = tie[4] - (a - tie[1]) * dy;
+        let x0 = tie[3] + (a - tie[0]) * dx;
+        let y0 = tie[4] - (a - tie[1]) * dy;
         let (chunk_w, chunk_h) = dec.chunk_dimensions();
         if chunk_w == 0 || chunk_h == 0 {
             return Err(terr(path, "zero chunk dimensions"));
         }
+        GeoTiff::assemble(
+            path,
+            (width, height, kind),
+            (x0, y0, dx, dy),
+            nodata,
+            pixel_is_point,
+            crs,
+            keys.vertical(),
+            (chunk_w, chunk_h),
+            Backend::Tiff(Mutex::new(vec![dec])),
+            cache_bytes,
+        )
+    }
+
+    /// Open an SRTM `.hgt` file: `n × n` big-endian int16 heights (n = 1201
+    /// for 3″, 3601 for 1″, from the file length), -32768 for voids, rows
+    /// from north to south; the name (`N46W122.hgt`) gives the latitude
+    /// and longitude of the south-west corner sample. Heights are above
+    /// EGM96 (SRTM's vertical datum) on WGS84.
+    fn open_hgt(path: &Path, cache_bytes: usize) -> Result<GeoTiff, GeoError> {
+        let bad = |what: String| GeoError::Georeference {
+            path: path.to_path_buf(),
+            what,
+        };
+        let file = File::open(path).map_err(|e| GeoError::Open {
+            path: path.to_path_buf(),
+            source: e,
+        })?;
+        let len = file
+            .metadata()
+            .map_err(|e| GeoError::Open {
+                path: path.to_path_buf(),
+                source: e,
+            })?
+            .len();
+        let n: u32 = match len {
+            2_884_802 => 1201,
+            25_934_402 => 3601,
+            l => {
+                return Err(bad(format!(
+                    "an SRTM .hgt file is 2884802 (3\") or 25934402 (1\") bytes, this one {l} (truncated?)"
+                )))
+            }
+        };
+        let (lat, lon) = parse_hgt_name(path).ok_or_else(|| {
+            bad("an SRTM .hgt file is named like N46W122.hgt (its south-west corner)".into())
+        })?;
+        let d = 1.0 / (n - 1) as f64;
+        GeoTiff::assemble(
+            path,
+            (n, n, SampleKind::I16),
+            (lon as f64, lat as f64 + 1.0, d, d),
+            Some(-32768.0),
+            true,
+            Crs::wgs84(),
+            Some(VerticalDatum::Egm96),
+            (n, HGT_CHUNK_ROWS),
+            Backend::Hgt(Mutex::new(file)),
+            cache_bytes,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        path: &Path,
+        (width, height, kind): (u32, u32, SampleKind),
+        (x0, y0, dx, dy): (f64, f64, f64, f64),
+        nodata: Option<f64>,
+        pixel_is_point: bool,
+        crs: Crs,
+        vertical: Option<VerticalDatum>,
+        (chunk_w, chunk_h): (u32, u32),
+        backend: Backend,
+        cache_bytes: usize,
+    ) -> Result<GeoTiff, GeoError> {
+        if width == 0 || height == 0 || width > MAX_SIDE || height > MAX_SIDE {
+            return Err(terr(
+                path,
+                format!("raster of {width} × {height} pixels (1 to {MAX_SIDE} a side are read)"),
+            ));
+        }
         let chunks_across = width.div_ceil(chunk_w);
-        Ok(GeoTiff {
+        let mut t = GeoTiff {
             path: path.to_path_buf(),
             width,
             height,
             kind,
-            lon0,
-            lat0,
+            x0,
+            y0,
             dx,
             dy,
             nodata,
             pixel_is_point,
+            crs,
+            vertical,
+            bbox: (0.0, 0.0, 0.0, 0.0),
+            spacing_m: 0.0,
+            spans: None,
             chunk_w,
             chunk_h,
             chunks_across,
-            decoders: Mutex::new(vec![dec]),
+            backend,
             cache: Mutex::new(Cache {
                 map: HashMap::default(),
                 stamp: 0,
                 bytes: 0,
             }),
             cache_bytes,
-        })
+        };
+        t.bbox = t.compute_bbox().ok_or_else(|| GeoError::WrongCrs {
+            path: path.to_path_buf(),
+            what: format!(
+                "{}: the raster's corners do not map to the surface",
+                t.crs.name
+            ),
+        })?;
+        t.spacing_m = t.compute_spacing().ok_or_else(|| GeoError::WrongCrs {
+            path: path.to_path_buf(),
+            what: format!("{}: cannot measure the raster's pixel spacing", t.crs.name),
+        })?;
+        if !t.crs.geographic && t.kind.is_elevation() {
+            t.spans = Some(t.compute_spans()?);
+        }
+        Ok(t)
+    }
+
+    /// First and last valued column of every row (one pass over the raster,
+    /// a chunk row at a time).
+    fn compute_spans(&self) -> Result<Vec<(u32, u32)>, GeoError> {
+        let mut spans = vec![(u32::MAX, 0u32); self.height as usize];
+        let mut rd = self.reader();
+        for row in 0..self.height {
+            let sp = &mut spans[row as usize];
+            for col in 0..self.width {
+                if !rd.elevation(col as i64, row as i64)?.is_nan() {
+                    sp.0 = sp.0.min(col);
+                    sp.1 = col;
+                }
+            }
+        }
+        Ok(spans)
+    }
+
+    /// Whether pixel `(col, row)` lies outside the raster's valued
+    /// footprint (see the `spans` field); always false for geographic
+    /// rasters, whose no-data pixels are voids to fill.
+    #[inline]
+    pub fn is_exterior(&self, col: i64, row: i64) -> bool {
+        match &self.spans {
+            None => false,
+            Some(sp) => match sp.get(row.clamp(0, self.height as i64 - 1) as usize) {
+                Some(&(a, b)) => col < a as i64 || col > b as i64,
+                None => true,
+            },
+        }
+    }
+
+    /// The latitude/longitude box of the pixel values: the border pixels
+    /// mapped through the CRS, widened to a pole a projected raster holds.
+    fn compute_bbox(&self) -> Option<(f64, f64, f64, f64)> {
+        let (w, h) = ((self.width - 1) as i64, (self.height - 1) as i64);
+        if self.crs.is_identity() {
+            let lat1 = self.y0;
+            let lat0 = self.y0 - h as f64 * self.dy;
+            return Some((lat0, lat1, self.x0, self.x0 + w as f64 * self.dx));
+        }
+        let (mut la0, mut la1, mut lo0, mut lo1) = (90f64, -90f64, 180f64, -180f64);
+        let n = 64i64;
+        let mut any = false;
+        for k in 0..=n {
+            let (c, r) = (w * k / n, h * k / n);
+            for (col, row) in [(c, 0), (c, h), (0, r), (w, r)] {
+                if let Some((la, lo)) = self.crs.inverse(
+                    self.x0 + col as f64 * self.dx,
+                    self.y0 - row as f64 * self.dy,
+                ) {
+                    any = true;
+                    la0 = la0.min(la);
+                    la1 = la1.max(la);
+                    lo0 = lo0.min(lo);
+                    lo1 = lo1.max(lo);
+                }
+            }
+        }
+        for pole in [90.0, -90.0] {
+            if let Some((x, y)) = self.crs.forward(pole, 0.0) {
+                let (c, r) = ((x - self.x0) / self.dx, (self.y0 - y) / self.dy);
+                if c >= 0.0 && c <= w as f64 && r >= 0.0 && r <= h as f64 {
+                    (la0, la1) = (la0.min(pole), la1.max(pole));
+                    (lo0, lo1) = (-180.0, 180.0);
+                }
+            }
+        }
+        any.then_some((la0, la1, lo0, lo1))
+    }
+
+    /// Ground distance (metres, on the surface's sphere of equatorial
+    /// radius) between the centre pixel and its right and lower
+    /// neighbours: the smaller.
+    fn compute_spacing(&self) -> Option<f64> {
+        let (c, r) = ((self.width / 2) as i64, (self.height / 2) as i64);
+        let p = self.position_of(c, r);
+        let radius = self.crs.datum.equatorial_radius();
+        let dist = |q: (f64, f64)| {
+            let (a, b) = (
+                planet_core::cube::direction_from_lat_lon(p.0.to_radians(), p.1.to_radians()),
+                planet_core::cube::direction_from_lat_lon(q.0.to_radians(), q.1.to_radians()),
+            );
+            planet_core::cube::angle_between(a, b) * radius
+        };
+        let mut s = f64::INFINITY;
+        for q in [
+            self.position_of(c + 1, r),
+            self.position_of(c - 1, r),
+            self.position_of(c, r + 1),
+            self.position_of(c, r - 1),
+        ] {
+            if q.0.is_finite() {
+                s = s.min(dist(q));
+            }
+        }
+        if self.crs.geographic {
+            // Longitude spacing at the equator: the cells of a geographic
+            // raster shrink towards the poles.
+            s = s
+                .max(self.dx.to_radians() * radius)
+                .max(self.dy.to_radians() * radius);
+        }
+        (s.is_finite() && s > 0.0).then_some(s)
     }
 
     /// The file this raster was read from.
@@ -249,17 +526,23 @@ impl GeoTiff {
 
     /// Whether the raster spans all longitudes (columns wrap).
     pub fn is_global(&self) -> bool {
-        self.width as f64 * self.dx >= 360.0 - 1e-9
+        self.crs.geographic && self.width as f64 * self.dx >= 360.0 - 1e-9
     }
 
-    /// Fractional pixel coordinates `(col, row)` of a point (degrees);
-    /// longitude is shifted by ±360° to the raster's range where that helps.
+    /// Fractional pixel coordinates `(col, row)` of a surface point
+    /// (degrees), through the CRS (inverse mapping, thesis §5.2); NaN where
+    /// the projection does not reach. For a geographic CRS longitude is
+    /// shifted by ±360° to the raster's range where that helps.
+    #[inline]
     pub fn pixel_of(&self, lat: f64, lon: f64) -> (f64, f64) {
-        let row = (self.lat0 - lat) / self.dy;
-        let mut col = (lon - self.lon0) / self.dx;
-        let span = 360.0 / self.dx;
-        let w = self.width as f64;
-        if !self.is_global() {
+        let Some((x, y)) = self.crs.forward(lat, lon) else {
+            return (f64::NAN, f64::NAN);
+        };
+        let row = (self.y0 - y) / self.dy;
+        let mut col = (x - self.x0) / self.dx;
+        if self.crs.geographic && !self.is_global() {
+            let span = 360.0 / self.dx;
+            let w = self.width as f64;
             if col < -0.5 && col + span <= w {
                 col += span;
             } else if col > w - 0.5 && col - span >= -1.0 {
@@ -269,32 +552,161 @@ impl GeoTiff {
         (col, row)
     }
 
-    /// Position (lat, lon degrees) of a pixel's value.
+    /// Position (lat, lon degrees) of a pixel's value; NaN where the CRS
+    /// does not map it to the surface.
     pub fn position_of(&self, col: i64, row: i64) -> (f64, f64) {
-        (
-            self.lat0 - row as f64 * self.dy,
-            self.lon0 + col as f64 * self.dx,
-        )
+        self.crs
+            .inverse(
+                self.x0 + col as f64 * self.dx,
+                self.y0 - row as f64 * self.dy,
+            )
+            .unwrap_or((f64::NAN, f64::NAN))
     }
 
     /// Whether the point lies between the first and last pixel values (so
     /// bilinear interpolation needs no extrapolation). Global rasters cover
     /// every longitude and clamp at the poles.
     pub fn covers(&self, lat: f64, lon: f64) -> bool {
-        let (c, r) = self.pixel_of(lat, lon);
         if self.is_global() {
             return true;
         }
-        c >= 0.0 && c <= (self.width - 1) as f64 && r >= 0.0 && r <= (self.height - 1) as f64
+        if !self.in_bbox(lat, lon) {
+            return false;
+        }
+        let (c, r) = self.pixel_of(lat, lon);
+        self.covers_at(lat, lon, c, r)
+    }
+
+    /// The bounding-box test of [`GeoTiff::covers`] (a projection can map
+    /// a point far outside the raster, e.g. beyond a transverse Mercator's
+    /// zone, into its pixel range).
+    #[inline]
+    fn in_bbox(&self, lat: f64, lon: f64) -> bool {
+        if self.is_global() {
+            return true;
+        }
+        let (b0, b1, l0, l1) = self.bbox;
+        if lat < b0 - 1e-9 || lat > b1 + 1e-9 {
+            return false;
+        }
+        self.crs.is_identity() || (lon >= l0 - 1e-9 && lon <= l1 + 1e-9)
+    }
+
+    /// [`GeoTiff::covers`] for a point whose pixel coordinates `(c, r)` are
+    /// known (from [`GeoTiff::pixel_of`] or [`GeoTiff::pixels_of_grid`]).
+    #[inline]
+    pub fn covers_at(&self, lat: f64, lon: f64, c: f64, r: f64) -> bool {
+        self.in_bbox(lat, lon) && self.covers_pixel(c, r)
+    }
+
+    /// [`GeoTiff::covers`] for pixel coordinates from
+    /// [`GeoTiff::pixels_of_grid`] (which applied the bounding-box test).
+    #[inline]
+    pub fn covers_pixel(&self, c: f64, r: f64) -> bool {
+        if self.is_global() {
+            return true;
+        }
+        let inside =
+            c >= 0.0 && c <= (self.width - 1) as f64 && r >= 0.0 && r <= (self.height - 1) as f64;
+        if !inside || self.spans.is_none() {
+            return inside;
+        }
+        let (c0, r0) = (c.floor() as i64, r.floor() as i64);
+        let (c1, r1) = (c.ceil() as i64, r.ceil() as i64);
+        !(self.is_exterior(c0, r0)
+            || self.is_exterior(c1, r0)
+            || self.is_exterior(c0, r1)
+            || self.is_exterior(c1, r1))
+    }
+
+    /// [`GeoTiff::pixel_of`] for a grid of `nx × ny` points (row-major),
+    /// NaN for points outside the raster's bounding box, as gdalwarp's
+    /// approximate transformer does (GDALApproxTransform, `-et 0.125`):
+    /// exact projections on a lattice of every [`APPROX_STEP`]th point and
+    /// at each lattice cell's middle point; where the bilinear
+    /// interpolation of the lattice misses the middle point by more than
+    /// [`APPROX_ERROR_PX`] pixel, or a corner does not project or lies
+    /// outside the bounding box, every point of the cell is projected
+    /// exactly. Rasters whose CRS is the surface's longitude/latitude are
+    /// mapped exactly (that is as cheap).
+    pub fn pixels_of_grid(
+        &self,
+        pts: &mut GridPoints<'_>,
+        nx: usize,
+        ny: usize,
+        out: &mut Vec<(f64, f64)>,
+    ) {
+        let exact = |pts: &mut GridPoints<'_>, k: usize| -> (f64, f64) {
+            let (la, lo) = pts.lat_lon(k);
+            if self.in_bbox(la, lo) {
+                self.pixel_of(la, lo)
+            } else {
+                (f64::NAN, f64::NAN)
+            }
+        };
+        out.clear();
+        if self.crs.is_identity() || nx < 3 || ny < 3 {
+            out.extend((0..pts.len()).map(|k| exact(pts, k)));
+            return;
+        }
+        out.resize(nx * ny, (f64::NAN, f64::NAN));
+        let lattice = |n: usize| -> Vec<usize> {
+            let mut v: Vec<usize> = (0..n).step_by(APPROX_STEP).collect();
+            if v.last() != Some(&(n - 1)) {
+                v.push(n - 1);
+            }
+            v
+        };
+        let (xs, ys) = (lattice(nx), lattice(ny));
+        for &y in &ys {
+            for &x in &xs {
+                out[y * nx + x] = exact(pts, y * nx + x);
+            }
+        }
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        for jy in 0..ys.len() - 1 {
+            let (y0, y1) = (ys[jy], ys[jy + 1]);
+            for jx in 0..xs.len() - 1 {
+                let (x0, x1) = (xs[jx], xs[jx + 1]);
+                let k = [
+                    out[y0 * nx + x0],
+                    out[y0 * nx + x1],
+                    out[y1 * nx + x0],
+                    out[y1 * nx + x1],
+                ];
+                let interp = |x: usize, y: usize| -> (f64, f64) {
+                    let fx = (x - x0) as f64 / (x1 - x0) as f64;
+                    let fy = (y - y0) as f64 / (y1 - y0) as f64;
+                    let top = (lerp(k[0].0, k[1].0, fx), lerp(k[0].1, k[1].1, fx));
+                    let bot = (lerp(k[2].0, k[3].0, fx), lerp(k[2].1, k[3].1, fx));
+                    (lerp(top.0, bot.0, fy), lerp(top.1, bot.1, fy))
+                };
+                let (mx, my) = ((x0 + x1) / 2, (y0 + y1) / 2);
+                let exact_mid = exact(pts, my * nx + mx);
+                let guess = interp(mx, my);
+                // NaN (outside the box or the projection) fails these.
+                let good = k.iter().all(|c| c.0.is_finite() && c.1.is_finite())
+                    && (guess.0 - exact_mid.0).abs() <= APPROX_ERROR_PX
+                    && (guess.1 - exact_mid.1).abs() <= APPROX_ERROR_PX;
+                for y in y0..=y1 {
+                    for x in x0..=x1 {
+                        if (x == x0 || x == x1) && (y == y0 || y == y1) {
+                            continue;
+                        }
+                        out[y * nx + x] = if good {
+                            interp(x, y)
+                        } else {
+                            exact(pts, y * nx + x)
+                        };
+                    }
+                }
+            }
+        }
     }
 
     /// Bounding box `(lat_min, lat_max, lon_min, lon_max)` of the pixel values.
     pub fn bounds(&self) -> (f64, f64, f64, f64) {
-        let lat1 = self.lat0;
-        let lat0 = self.lat0 - (self.height - 1) as f64 * self.dy;
-        let lon0 = self.lon0;
-        let lon1 = self.lon0 + (self.width - 1) as f64 * self.dx;
-        (lat0, lat1, lon0, lon1)
+        self.bbox
     }
 
     /// Wrap/clamp pixel indices into the raster.
@@ -308,6 +720,17 @@ impl GeoTiff {
         (c as u32, row.clamp(0, self.height as i64 - 1) as u32)
     }
 
+    /// Ground distance between neighbouring pixels at the raster's centre
+    /// (metres; for a geographic raster, the spacing at the equator).
+    pub fn spacing_m(&self) -> f64 {
+        self.spacing_m
+    }
+
+    /// Pixel spacing in degrees of arc on the surface.
+    pub fn spacing_deg(&self) -> f64 {
+        (self.spacing_m / self.crs.datum.equatorial_radius()).to_degrees()
+    }
+
     fn chunk(&self, idx: u32) -> Result<Arc<Chunk>, GeoError> {
         {
             let mut c = self.cache.lock();
@@ -318,15 +741,18 @@ impl GeoTiff {
                 return Ok(e.0.clone());
             }
         }
-        let data = {
-            let idle = self.decoders.lock().pop();
-            let mut d = match idle {
-                Some(d) => d,
-                None => self.open_decoder()?,
-            };
-            let r = d.read_chunk(idx).map_err(|e| terr(&self.path, e));
-            self.decoders.lock().push(d);
-            r?
+        let data = match &self.backend {
+            Backend::Tiff(decoders) => {
+                let idle = decoders.lock().pop();
+                let mut d = match idle {
+                    Some(d) => d,
+                    None => self.open_decoder()?,
+                };
+                let r = d.read_chunk(idx).map_err(|e| terr(&self.path, e));
+                decoders.lock().push(d);
+                r?
+            }
+            Backend::Hgt(file) => DecodingResult::I16(self.read_hgt_rows(file, idx)?),
         };
         let nodata = self.nodata;
         let void = |v: f64| nodata.is_some_and(|n| v == n) || !v.is_finite();
@@ -388,6 +814,23 @@ impl GeoTiff {
         Ok(arc)
     }
 
+    /// Rows `[idx·HGT_CHUNK_ROWS, …)` of an `.hgt` file.
+    fn read_hgt_rows(&self, file: &Mutex<File>, idx: u32) -> Result<Vec<i16>, GeoError> {
+        let r0 = idx as u64 * self.chunk_h as u64;
+        let rows = (self.chunk_h as u64).min((self.height as u64).saturating_sub(r0));
+        let mut buf = vec![0u8; (rows * self.width as u64 * 2) as usize];
+        {
+            let mut f = file.lock();
+            f.seek(SeekFrom::Start(r0 * self.width as u64 * 2))
+                .and_then(|_| f.read_exact(&mut buf))
+                .map_err(|e| terr(&self.path, e))?;
+        }
+        Ok(buf
+            .chunks_exact(2)
+            .map(|b| i16::from_be_bytes([b[0], b[1]]))
+            .collect())
+    }
+
     fn open_decoder(&self) -> Result<Decoder<BufReader<File>>, GeoError> {
         let file = File::open(&self.path).map_err(|e| GeoError::Open {
             path: self.path.clone(),
@@ -395,7 +838,7 @@ impl GeoTiff {
         })?;
         Ok(Decoder::new(BufReader::new(file))
             .map_err(|e| terr(&self.path, e))?
-            .with_limits(Limits::unlimited()))
+            .with_limits(limits()))
     }
 
     /// A reader with its own small memo of recently used chunks, so that
@@ -431,9 +874,9 @@ impl GeoTiff {
         self.chunk_w as usize * self.chunk_h as usize * self.kind.bytes()
     }
 
-    /// Cells per 90° of arc (longitude spacing).
+    /// Cells per 90° of arc on the surface.
     pub fn cells_per_quarter(&self) -> f64 {
-        90.0 / self.dx
+        90.0 / self.spacing_deg()
     }
 }
 
@@ -488,6 +931,39 @@ impl TiffReader<'_> {
         }
     }
 
+    /// Pixels `(c0, r0)`, `(c0+1, r0)`, `(c0, r0+1)`, `(c0+1, r0+1)` (raw,
+    /// NaN for voids) when all four lie inside the raster and in one chunk;
+    /// `None` otherwise (read them one by one).
+    #[inline]
+    pub fn quad(&mut self, c0: i64, r0: i64) -> Result<Option<[f32; 4]>, GeoError> {
+        let t = self.tiff;
+        if c0 < 0 || r0 < 0 || c0 + 1 >= t.width as i64 || r0 + 1 >= t.height as i64 {
+            return Ok(None);
+        }
+        let (c0, r0) = (c0 as u32, r0 as u32);
+        let (cx, cy) = (c0 / t.chunk_w, r0 / t.chunk_h);
+        if (c0 + 1) / t.chunk_w != cx || (r0 + 1) / t.chunk_h != cy {
+            return Ok(None);
+        }
+        let (idx, off) = t.locate(c0, r0);
+        let data_w = t.chunk_w.min(t.width - cx * t.chunk_w) as usize;
+        match self.chunk(idx)? {
+            Chunk::Elev(v) => {
+                let at = |o: usize| v.get(o).copied().unwrap_or(f32::NAN);
+                Ok(Some([
+                    at(off),
+                    at(off + 1),
+                    at(off + data_w),
+                    at(off + data_w + 1),
+                ]))
+            }
+            Chunk::Rgb(_) => Err(GeoError::UnsupportedSampleType {
+                path: t.path.clone(),
+                what: "colour raster used as elevation".into(),
+            }),
+        }
+    }
+
     /// [`GeoTiff::colour`].
     #[inline]
     pub fn colour(&mut self, col: i64, row: i64) -> Result<[u8; 3], GeoError> {
@@ -501,4 +977,59 @@ impl TiffReader<'_> {
             }),
         }
     }
+}
+
+/// South-west corner `(lat, lon)` of an SRTM tile from its file name
+/// (`N46W122.hgt`, `s01e010.SRTMGL1.hgt`).
+pub fn parse_hgt_name(path: &Path) -> Option<(i32, i32)> {
+    let name = path.file_name()?.to_str()?.to_ascii_uppercase();
+    let b = name.as_bytes();
+    if b.len() < 7 {
+        return None;
+    }
+    let lat: i32 = name.get(1..3)?.parse().ok()?;
+    let lon: i32 = name.get(4..7)?.parse().ok()?;
+    let lat = match b[0] {
+        b'N' => lat,
+        b'S' => -lat,
+        _ => return None,
+    };
+    let lon = match b[3] {
+        b'E' => lon,
+        b'W' => -lon,
+        _ => return None,
+    };
+    ((-90..90).contains(&lat) && (-180..180).contains(&lon)).then_some((lat, lon))
+}
+
+/// Largest width or height of a raster read (2²⁴: a 1″ global raster is
+/// 1.3 M × 0.65 M); larger headers are refused before any allocation that
+/// scales with them.
+pub const MAX_SIDE: u32 = 1 << 24;
+
+/// What the `raster_readers` fuzz target and its replay test run on
+/// untrusted bytes at `path`: open the raster with a 1 MiB chunk cache,
+/// map its corners and centre through its CRS and read those pixels.
+pub fn probe(path: &Path) -> Result<(), GeoError> {
+    let t = GeoTiff::open(path, 1 << 20)?;
+    let (w, h) = (t.width as i64, t.height as i64);
+    for (c, r) in [
+        (0, 0),
+        (w - 1, 0),
+        (0, h - 1),
+        (w - 1, h - 1),
+        (w / 2, h / 2),
+    ] {
+        let (la, lo) = t.position_of(c, r);
+        if la.is_finite() {
+            let _ = t.pixel_of(la, lo);
+            let _ = t.covers(la, lo);
+        }
+        if t.kind.is_elevation() {
+            t.elevation(c, r)?;
+        } else {
+            t.colour(c, r)?;
+        }
+    }
+    Ok(())
 }

@@ -3,7 +3,9 @@
 //! from a deterministic procedural planet, and reads them back (verify,
 //! inspect, point sampling).
 //!
-//! - [`geotiff`]: EPSG:4326 GeoTIFF rasters read by strips/tiles on demand.
+//! - [`geotiff`]: GeoTIFF and SRTM `.hgt` rasters read by chunks on demand.
+//! - [`crs`]: their CRS (GeoKeys → PROJ string → `proj4rs`) and surface.
+//! - [`geoid`]: vertical datums (EGM96, EGM2008) to ellipsoidal heights.
 //! - [`source`]: the elevation stack (finest covering source, void filling)
 //!   and colour source, re-projected per block (thesis §5.2, Eq. 5.1).
 //! - [`plan`]: the tree shape, depth by region, graded (thesis §4.3.3).
@@ -17,8 +19,10 @@
 
 pub mod build;
 pub mod builtin;
+pub mod crs;
 pub mod db;
 pub mod error;
+pub mod geoid;
 pub mod geotiff;
 pub mod plan;
 pub mod procedural;
@@ -46,6 +50,11 @@ pub struct RasterOptions {
     pub threads: Option<usize>,
     /// Hide progress bars.
     pub quiet: bool,
+    /// The vertical datum of the elevation inputs' heights: empty, what
+    /// each file declares, else EGM96 for int16 geographic DEMs
+    /// ([`source::vertical_datum_of`]); one, every input's; one per input,
+    /// in the order given.
+    pub vertical: Vec<geoid::VerticalDatum>,
 }
 
 impl Default for RasterOptions {
@@ -55,46 +64,115 @@ impl Default for RasterOptions {
             max_memory_mb: 1024,
             threads: None,
             quiet: true,
+            vertical: Vec::new(),
         }
     }
 }
 
-/// Open raster sources and plan their tree (for tests and tools).
-pub fn open_rasters(
+/// Open raster sources and plan their tree (for tests and tools); notes
+/// (how each input's vertical datum was chosen) go to `note`.
+pub fn open_rasters_noting(
     elevation: &[&Path],
     colour: Option<&Path>,
     opts: &RasterOptions,
+    note: &mut dyn FnMut(String),
 ) -> Result<(source::RasterSource, plan::Plan), BuildError> {
-    if elevation.is_empty() {
-        return Err(BuildError::Options("no elevation source given".into()));
+    if elevation.is_empty() && colour.is_none() {
+        return Err(BuildError::Options(
+            "no elevation or colour source given".into(),
+        ));
     }
-    let cache = opts.max_memory_mb.max(8) << 19; // half the bound, in bytes
-    let stack = source::ElevationStack::open(elevation, cache * 3 / 4)?;
+    let mut cache = opts.max_memory_mb.max(8) << 19; // half the bound, in bytes
+                                                     // EGM96's synthesis memory (its coefficient table, paged in, and one
+                                                     // scratch per worker) comes out of the raster caches' half when an
+                                                     // input may need it.
+    if !(opts.vertical.len() <= 1 || opts.vertical.len() == elevation.len()) {
+        return Err(BuildError::Options(format!(
+            "{} vertical datums for {} elevation inputs (give one, or one per input)",
+            opts.vertical.len(),
+            elevation.len()
+        )));
+    }
+    if opts.vertical.is_empty() || opts.vertical.contains(&geoid::VerticalDatum::Egm96) {
+        let threads = opts.threads.unwrap_or_else(rayon::current_num_threads);
+        let geoid = geoid::EGM96_FIXED_BYTES + threads * geoid::EGM96_THREAD_BYTES;
+        cache = cache.saturating_sub(geoid).max(cache / 4);
+    }
+    let stack = source::ElevationStack::open_with(elevation, cache * 3 / 4, &opts.vertical, note)?;
     let colour = match colour {
         Some(p) => Some(source::ColourSource::open(p, cache / 4)?),
         None => None,
     };
-    let max_elev = stack.layers.iter().map(|l| l.level).max().unwrap_or(0);
-    let colour_level = colour.as_ref().map(|c| c.level.min(max_elev));
-    let plan = plan::plan_for_sources(&stack, colour_level, opts.max_level);
+    let datum = source::check_same_datum(
+        stack
+            .layers
+            .iter()
+            .map(|l| &l.tiff)
+            .chain(colour.as_ref().map(|c| &c.tiff)),
+    )?
+    .unwrap_or(planet_core::Datum::WGS84);
+    let plan = match (&colour, stack.layers.is_empty()) {
+        // Colour alone: a zero elevation tree as deep as the colour needs
+        // where the colour raster lies (colour blocks exist only where
+        // elevation blocks do, thesis §4.4.1).
+        (Some(c), true) => {
+            let level = c.level.min(opts.max_level);
+            plan::plan_by(
+                |b| {
+                    if source::footprint_intersects(&c.tiff, b) {
+                        level
+                    } else {
+                        0
+                    }
+                },
+                Some(level),
+            )
+        }
+        _ => {
+            let max_elev = stack.layers.iter().map(|l| l.level).max().unwrap_or(0);
+            let colour_level = colour.as_ref().map(|c| c.level.min(max_elev));
+            plan::plan_for_sources(&stack, colour_level, opts.max_level)
+        }
+    };
     Ok((
         source::RasterSource {
             elevation: stack,
             colour,
             scale: 1.0,
+            datum,
         },
         plan,
     ))
 }
 
-/// Build a database from GeoTIFF rasters (elevation stack, optional colour).
+/// [`open_rasters_noting`] with the notes dropped.
+pub fn open_rasters(
+    elevation: &[&Path],
+    colour: Option<&Path>,
+    opts: &RasterOptions,
+) -> Result<(source::RasterSource, plan::Plan), BuildError> {
+    open_rasters_noting(elevation, colour, opts, &mut |_| {})
+}
+
+/// Build a database from rasters (elevation stack and/or colour).
 pub fn build_rasters(
     elevation: &[&Path],
     colour: Option<&Path>,
     out: &Path,
     opts: &RasterOptions,
 ) -> Result<BuildStats, BuildError> {
-    let (src, plan) = open_rasters(elevation, colour, opts)?;
+    build_rasters_noting(elevation, colour, out, opts, &mut |_| {})
+}
+
+/// [`build_rasters`], with notes on the inputs (vertical datums chosen).
+pub fn build_rasters_noting(
+    elevation: &[&Path],
+    colour: Option<&Path>,
+    out: &Path,
+    opts: &RasterOptions,
+    note: &mut dyn FnMut(String),
+) -> Result<BuildStats, BuildError> {
+    let (src, plan) = open_rasters_noting(elevation, colour, opts, note)?;
     build(
         &src,
         &plan,

@@ -20,14 +20,24 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// Build a database from GeoTIFFs or a procedural planet.
+    /// Build a database from rasters or a procedural planet.
     Build {
-        /// Elevation GeoTIFFs (EPSG:4326; int16, uint16 or float32).
+        /// Elevation rasters: GeoTIFFs in any geographic or projected CRS
+        /// (EPSG code or user-defined GeoKeys; int16, uint16 or float32) or
+        /// SRTM .hgt files. All must lie on one body.
         #[arg(long, num_args = 1..)]
         elevation: Vec<PathBuf>,
-        /// Colour GeoTIFF (RGB8 or grey8).
+        /// Colour GeoTIFF (RGB8 or grey8), any CRS; alone, it builds a
+        /// colour database on the datum's surface (zero heights).
         #[arg(long)]
         colour: Option<PathBuf>,
+        /// Vertical datum of the elevation inputs' heights, converted to
+        /// heights above the ellipsoid: egm96, egm2008 or ellipsoid; one
+        /// for every input, or one per input in --elevation's order.
+        /// Default: what each file declares, else EGM96 for int16
+        /// geographic DEMs (said on stderr), else ellipsoid.
+        #[arg(long, num_args = 1.., value_name = "egm96|egm2008|ellipsoid")]
+        vertical_datum: Vec<planet_preprocess::geoid::VerticalDatum>,
         /// Build a procedural planet instead.
         #[arg(long, conflicts_with_all = ["elevation", "colour"])]
         procedural: bool,
@@ -88,7 +98,9 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
-    /// Elevation in metres at a point (last line of output).
+    /// Height at a point: above the ellipsoid on the line before last, and
+    /// alone on the last line in the sources' own vertical datum (the same
+    /// for ellipsoidal or procedural databases).
     Sample {
         /// Database file.
         db: PathBuf,
@@ -102,6 +114,7 @@ enum Cmd {
 }
 
 fn main() {
+    planet_core::pipe::exit_quietly_on_broken_pipe();
     match run() {
         Ok(()) => {}
         Err(e) => {
@@ -117,6 +130,7 @@ fn run() -> Result<()> {
         Cmd::Build {
             elevation,
             colour,
+            vertical_datum,
             procedural,
             seed,
             levels,
@@ -161,11 +175,17 @@ fn run() -> Result<()> {
                 planet_preprocess::build_procedural(&opts, &out)
                     .with_context(|| format!("building {}", out.display()))?
             } else {
-                if elevation.is_empty() {
-                    bail!("give --elevation FILE... or --procedural");
+                if elevation.is_empty() && colour.is_none() {
+                    bail!("give --elevation FILE..., --colour FILE or --procedural");
+                }
+                if vertical_datum.contains(&planet_preprocess::geoid::VerticalDatum::Egm2008) {
+                    eprintln!(
+                        "note: EGM2008 undulations come from the egm2008 crate's 3° grid \
+                         (metre-level accuracy)"
+                    );
                 }
                 let e: Vec<&std::path::Path> = elevation.iter().map(|p| p.as_path()).collect();
-                planet_preprocess::build_rasters(
+                planet_preprocess::build_rasters_noting(
                     &e,
                     colour.as_deref(),
                     &out,
@@ -174,7 +194,9 @@ fn run() -> Result<()> {
                         max_memory_mb: max_memory,
                         threads,
                         quiet,
+                        vertical: vertical_datum,
                     },
+                    &mut |n| eprintln!("note: {n}"),
                 )
                 .with_context(|| format!("building {}", out.display()))?
             };
@@ -227,7 +249,18 @@ fn run() -> Result<()> {
             let s = db::Sampler::open(&path)?;
             let r = s.sample(lat, lon)?;
             println!("leaf {:?}", r.leaf);
-            println!("{}", r.metres);
+            let v = s.vertical_datum();
+            println!("ellipsoidal_height_m {}", r.metres);
+            match v {
+                Some(v) => {
+                    println!("vertical_datum {v}");
+                    println!("{}", s.in_vertical_datum(lat, lon, r.metres, v));
+                }
+                None => {
+                    println!("vertical_datum ellipsoid");
+                    println!("{}", r.metres);
+                }
+            }
         }
     }
     Ok(())

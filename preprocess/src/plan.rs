@@ -152,10 +152,15 @@ pub fn leaf_containing(split: &HashSet<BlockId>, b: BlockId) -> Option<BlockId> 
 /// Plan the trees for a raster stack: split while a covering source is finer,
 /// capped by `max_level`, then grade to [`MAX_GRADE`].
 pub fn plan_for_sources(stack: &ElevationStack, colour_level: Option<u8>, max_level: u8) -> Plan {
+    plan_by(|b| stack.level_needed(b).min(max_level), colour_level)
+}
+
+/// Split every block above the level `need(block)` asks for, then grade.
+pub fn plan_by(need: impl Fn(BlockId) -> u8, colour_level: Option<u8>) -> Plan {
     let mut split = HashSet::new();
     let mut stackv: Vec<BlockId> = Face::ALL.iter().map(|&f| BlockId::root(f)).collect();
     while let Some(b) = stackv.pop() {
-        let need = stack.level_needed(b).min(max_level);
+        let need = need(b);
         if b.level < need {
             split.insert(b);
             stackv.extend(b.children());

@@ -34,9 +34,10 @@
 
 use crate::build::GridSource;
 use crate::error::{BuildError, GeoError};
-use crate::geotiff::{GeoTiff, TiffReader};
+use crate::geoid::{self, Egm96Grid, Egm96Reader, VerticalDatum};
+use crate::geotiff::{GeoTiff, GridPoints, TiffReader};
 use parking_lot::Mutex;
-use planet_core::cube::{lat_lon_from_direction, normalize, plane_from_angle, sample_coord};
+use planet_core::cube::{normalize, plane_from_angle, sample_coord};
 use planet_core::lod::Rgb;
 use planet_core::{BlockId, Datum, FaceCoord};
 use std::collections::HashMap;
@@ -73,6 +74,11 @@ pub struct Layer {
     pub tiff: GeoTiff,
     /// Its tree level (elevation width 64).
     pub level: u8,
+    /// The vertical datum of its heights (converted to ellipsoidal heights
+    /// when sampled, [`crate::geoid`]).
+    pub vertical: VerticalDatum,
+    /// EGM96 node spacing for this layer, degrees ([`geoid::spacing_for`]).
+    pub geoid_spacing: f64,
 }
 
 /// A stack of elevation rasters, coarsest first.
@@ -85,14 +91,96 @@ pub struct ElevationStack {
     computing: Vec<Mutex<()>>,
     /// Bytes a layer's fill window may take.
     fill_budget: usize,
+    /// EGM96 undulation nodes shared by the layers.
+    geoid: Egm96Grid,
+}
+
+/// The vertical datum of an elevation raster: `chosen` if given, else what
+/// the file declares, else EGM96 for an int16 DEM in a geographic Earth CRS
+/// (SRTM, Copernicus and most national DEMs), else the ellipsoid. The
+/// second value says which rule decided, for the build's notes.
+pub fn vertical_datum_of(
+    t: &GeoTiff,
+    chosen: Option<VerticalDatum>,
+) -> (VerticalDatum, &'static str) {
+    if let Some(v) = chosen {
+        return (v, "given");
+    }
+    if let Some(v) = t.vertical {
+        return (v, "declared by the file");
+    }
+    if t.kind == crate::geotiff::SampleKind::I16
+        && t.crs.geographic
+        && t.crs.datum.body() == Some(planet_core::datum::Body::Earth)
+    {
+        return (
+            VerticalDatum::Egm96,
+            "not declared; taken as EGM96 for an int16 geographic DEM",
+        );
+    }
+    (
+        VerticalDatum::Ellipsoid,
+        "not declared; taken as ellipsoidal",
+    )
+}
+
+/// Check that every raster lies on the same surface; the error names the
+/// first two that differ.
+pub fn check_same_datum<'a>(
+    rasters: impl IntoIterator<Item = &'a GeoTiff>,
+) -> Result<Option<Datum>, GeoError> {
+    let mut first: Option<&GeoTiff> = None;
+    for t in rasters {
+        match first {
+            None => first = Some(t),
+            Some(f) if f.crs.datum != t.crs.datum => {
+                let describe = |g: &GeoTiff| {
+                    let d = g.crs.datum;
+                    format!(
+                        "{} ({}, a = {} m, b = {} m)",
+                        g.crs.name,
+                        d.name().unwrap_or_else(|| "unknown body".into()),
+                        d.equatorial_radius(),
+                        d.polar_radius()
+                    )
+                };
+                return Err(GeoError::MixedDatums {
+                    first: f.path().to_path_buf(),
+                    first_datum: describe(f),
+                    second: t.path().to_path_buf(),
+                    second_datum: describe(t),
+                });
+            }
+            Some(_) => {}
+        }
+    }
+    Ok(first.map(|f| f.crs.datum))
 }
 
 impl ElevationStack {
-    /// Open elevation rasters; the cache bound is shared between them.
+    /// Open elevation rasters, heights kept as they are (no vertical datum
+    /// conversion); the cache bound is shared between them.
     pub fn open(paths: &[&Path], cache_bytes: usize) -> Result<ElevationStack, GeoError> {
+        ElevationStack::open_with(paths, cache_bytes, &[VerticalDatum::Ellipsoid], &mut |_| {})
+    }
+
+    /// Open elevation rasters whose heights are in `vertical` (empty: per
+    /// file, see [`vertical_datum_of`]; one: all; else the i-th input's);
+    /// `note` receives one line per file whose vertical datum was not given.
+    pub fn open_with(
+        paths: &[&Path],
+        cache_bytes: usize,
+        vertical: &[VerticalDatum],
+        note: &mut dyn FnMut(String),
+    ) -> Result<ElevationStack, GeoError> {
         let per = (cache_bytes / paths.len().max(1)).max(1 << 20);
         let mut layers = Vec::new();
-        for p in paths {
+        for (i, p) in paths.iter().enumerate() {
+            let vertical = match vertical {
+                [] => None,
+                [one] => Some(*one),
+                many => many.get(i).copied(),
+            };
             let tiff = GeoTiff::open(p, per)?;
             if !tiff.kind.is_elevation() {
                 return Err(GeoError::Role {
@@ -100,15 +188,39 @@ impl ElevationStack {
                     what: format!("{:?} is not an elevation sample type", tiff.kind),
                 });
             }
+            let (v, why) = vertical_datum_of(&tiff, vertical);
+            if vertical.is_none() {
+                note(format!("{}: vertical datum {v} ({why})", p.display()));
+            }
+            if v != VerticalDatum::Ellipsoid
+                && tiff.crs.datum.body() != Some(planet_core::datum::Body::Earth)
+            {
+                return Err(GeoError::Role {
+                    path: p.to_path_buf(),
+                    what: format!(
+                        "vertical datum {v} is an Earth geoid, but the raster is on {}",
+                        tiff.crs
+                            .datum
+                            .name()
+                            .unwrap_or_else(|| "another body".into())
+                    ),
+                });
+            }
             let level = level_for(tiff.cells_per_quarter(), ELEVATION_WIDTH);
-            layers.push(Layer { tiff, level });
+            let geoid_spacing = geoid::spacing_for(tiff.spacing_deg());
+            layers.push(Layer {
+                tiff,
+                level,
+                vertical: v,
+                geoid_spacing,
+            });
         }
+        check_same_datum(layers.iter().map(|l| &l.tiff))?;
         layers.sort_by(|a, b| {
             a.tiff
-                .dx
-                .partial_cmp(&b.tiff.dx)
+                .cells_per_quarter()
+                .partial_cmp(&b.tiff.cells_per_quarter())
                 .unwrap_or(std::cmp::Ordering::Equal)
-                .reverse()
         });
         let fills = layers.iter().map(|_| Mutex::new(HashMap::new())).collect();
         let computing = layers.iter().map(|_| Mutex::new(())).collect();
@@ -117,7 +229,15 @@ impl ElevationStack {
             fills,
             computing,
             fill_budget: per,
+            geoid: Egm96Grid::new(),
         })
+    }
+
+    /// The surface the layers lie on (WGS84 for none).
+    pub fn datum(&self) -> Datum {
+        self.layers
+            .first()
+            .map_or(Datum::WGS84, |l| l.tiff.crs.datum)
     }
 
     /// A reader of the stack with per-layer chunk memos (one per worker and
@@ -126,11 +246,13 @@ impl ElevationStack {
         StackReader {
             stack: self,
             layers: self.layers.iter().map(|l| l.tiff.reader()).collect(),
+            geoid: self.geoid.reader(),
         }
     }
 
-    /// Elevation in metres at (lat, lon) degrees: the finest covering layer,
-    /// bilinear, voids filled. 0 where nothing covers the point.
+    /// Elevation in metres above the ellipsoid at (lat, lon) degrees: the
+    /// finest covering layer, bilinear, voids filled, converted from the
+    /// layer's vertical datum. 0 where nothing covers the point.
     pub fn sample(&self, lat: f64, lon: f64) -> Result<f64, GeoError> {
         self.reader().sample(lat, lon)
     }
@@ -161,6 +283,7 @@ impl ElevationStack {
 pub struct StackReader<'a> {
     stack: &'a ElevationStack,
     layers: Vec<TiffReader<'a>>,
+    geoid: Egm96Reader<'a>,
 }
 
 impl StackReader<'_> {
@@ -176,18 +299,80 @@ impl StackReader<'_> {
 
     /// [`ElevationStack::sample_layer`].
     pub fn sample_layer(&mut self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
-        let t = self.layers[idx].tiff();
-        let (c, r) = t.pixel_of(lat, lon);
+        let (c, r) = self.layers[idx].tiff().pixel_of(lat, lon);
+        self.sample_layer_at(idx, lat, lon, c, r)
+    }
+
+    /// Elevations (m above the ellipsoid) of a row-major grid of `nx × ny`
+    /// points, as [`StackReader::sample`] at each, with each layer's pixel
+    /// coordinates from [`GeoTiff::pixels_of_grid`] (computed for a layer
+    /// only once a point needs it).
+    pub fn sample_grid(
+        &mut self,
+        pts: &mut GridPoints<'_>,
+        nx: usize,
+        ny: usize,
+        out: &mut [f64],
+    ) -> Result<(), GeoError> {
+        let n = self.layers.len();
+        let mut px: Vec<Option<Vec<(f64, f64)>>> = vec![None; n];
+        for k in 0..pts.len() {
+            out[k] = 0.0;
+            for idx in (0..n).rev() {
+                let grid = px[idx].get_or_insert_with(|| {
+                    let mut v = Vec::new();
+                    self.layers[idx].tiff().pixels_of_grid(pts, nx, ny, &mut v);
+                    v
+                });
+                let (c, r) = grid[k];
+                if self.layers[idx].tiff().covers_pixel(c, r) {
+                    let (lat, lon) = if self.stack.layers[idx].vertical == VerticalDatum::Ellipsoid
+                    {
+                        (f64::NAN, f64::NAN)
+                    } else {
+                        pts.lat_lon(k)
+                    };
+                    out[k] = self.sample_layer_at(idx, lat, lon, c, r)?;
+                    break;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Bilinear sample of layer `idx` at pixel coordinates `(c, r)` of the
+    /// point (lat, lon), voids filled, converted to ellipsoidal height.
+    fn sample_layer_at(
+        &mut self,
+        idx: usize,
+        lat: f64,
+        lon: f64,
+        c: f64,
+        r: f64,
+    ) -> Result<f64, GeoError> {
         let (c0, r0) = (c.floor(), r.floor());
         let (fc, fr) = (c - c0, r - r0);
         let (c0, r0) = (c0 as i64, r0 as i64);
         let mut v = [0f64; 4];
-        for (k, (dc, dr)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
-            v[k] = self.pixel(idx, c0 + dc, r0 + dr)?;
+        // The 2 × 2 pixels from one chunk where they lie in one and hold no
+        // void; else pixel by pixel (wrapping, clamping, filling).
+        match self.layers[idx].quad(c0, r0)? {
+            Some(q) if q.iter().all(|x| !x.is_nan()) => {
+                for k in 0..4 {
+                    v[k] = q[k] as f64;
+                }
+            }
+            _ => {
+                for (k, (dc, dr)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
+                    v[k] = self.pixel(idx, c0 + dc, r0 + dr)?;
+                }
+            }
         }
         let top = v[0] + (v[1] - v[0]) * fc;
         let bot = v[2] + (v[3] - v[2]) * fc;
-        Ok(top + (bot - top) * fr)
+        let l = &self.stack.layers[idx];
+        let n = geoid::undulation(l.vertical, &mut self.geoid, lat, lon, l.geoid_spacing);
+        Ok(top + (bot - top) * fr + n)
     }
 
     /// [`ElevationStack::pixel`].
@@ -296,15 +481,20 @@ impl ElevationStack {
         let mut delta = vec![f64::NAN; w * h];
         let mut base = vec![0f64; w * h];
         let mut voids = Vec::new();
+        // Voids: no-data pixels, except outside a re-projected raster's
+        // footprint (left unknown: neither void nor border).
+        let is_void: Vec<bool> = (0..w * h)
+            .map(|i| raw[i].is_nan() && !t.is_exterior(c0 + (i % w) as i64, r0 + (i / w) as i64))
+            .collect();
         for y in 0..h {
             for x in 0..w {
                 let i = y * w + x;
-                let void = raw[i].is_nan();
-                let border = !void
-                    && ((x > 0 && raw[i - 1].is_nan())
-                        || (x + 1 < w && raw[i + 1].is_nan())
-                        || (y > 0 && raw[i - w].is_nan())
-                        || (y + 1 < h && raw[i + w].is_nan()));
+                let void = is_void[i];
+                let border = !raw[i].is_nan()
+                    && ((x > 0 && is_void[i - 1])
+                        || (x + 1 < w && is_void[i + 1])
+                        || (y > 0 && is_void[i - w])
+                        || (y + 1 < h && is_void[i + w]));
                 if void || border {
                     if void {
                         voids.push(i);
@@ -329,7 +519,7 @@ impl ElevationStack {
                 let i = y * w + x;
                 let (c, r) = (c0 + x as i64, r0 + y as i64);
                 let inside = c >= keep.0 && c < keep.1 && r >= keep.2 && r < keep.3;
-                if raw[i].is_nan() && inside {
+                if is_void[i] && inside {
                     table.insert(c as u64 + r as u64 * t.width as u64, base[i] + delta[i]);
                 }
             }
@@ -345,7 +535,7 @@ pub fn footprint_intersects(t: &GeoTiff, b: BlockId) -> bool {
         return true;
     }
     let (s0, t0, s1, t1) = b.extent();
-    let n = 16;
+    let n = 16i64;
     for j in 0..=n {
         for i in 0..=n {
             let fc = FaceCoord {
@@ -359,11 +549,14 @@ pub fn footprint_intersects(t: &GeoTiff, b: BlockId) -> bool {
             }
         }
     }
-    let (la0, la1, lo0, lo1) = t.bounds();
+    // Raster points inside the block (a raster smaller than the block).
+    let (w, h) = (t.width as i64 - 1, t.height as i64 - 1);
     for j in 0..=n {
         for i in 0..=n {
-            let la = la0 + (la1 - la0) * j as f64 / n as f64;
-            let lo = lo0 + (lo1 - lo0) * i as f64 / n as f64;
+            let (la, lo) = t.position_of(w * i / n, h * j / n);
+            if !la.is_finite() {
+                continue;
+            }
             let fc = FaceCoord::from_lat_lon(la.to_radians(), lo.to_radians());
             if fc.face == b.face && fc.s >= s0 && fc.s <= s1 && fc.t >= t0 && fc.t <= t1 {
                 return true;
@@ -438,6 +631,15 @@ impl ColourSource {
     /// [`ColourSource::sample`] through a worker's reader of this raster.
     pub fn sample_with(rd: &mut TiffReader<'_>, lat: f64, lon: f64) -> Result<Rgb, GeoError> {
         let (c, r) = rd.tiff().pixel_of(lat, lon);
+        Self::sample_px(rd, c, r)
+    }
+
+    /// Bilinear colour at fractional pixel `(c, r)` (black where the
+    /// projection does not reach).
+    pub fn sample_px(rd: &mut TiffReader<'_>, c: f64, r: f64) -> Result<Rgb, GeoError> {
+        if !(c.is_finite() && r.is_finite()) {
+            return Ok([0; 3]);
+        }
         let (c0, r0) = (c.floor(), r.floor());
         let (fc, fr) = (c - c0, r - r0);
         let (c0, r0) = (c0 as i64, r0 as i64);
@@ -457,7 +659,9 @@ impl ColourSource {
     }
 }
 
-/// Real-data source: an elevation stack and an optional colour raster.
+/// Real-data source: an elevation stack and an optional colour raster. A
+/// stack of no layers is a constant zero height on the datum (colour-only
+/// databases: the header's elevation tree is required, so it holds zeros).
 pub struct RasterSource {
     /// Elevation rasters.
     pub elevation: ElevationStack,
@@ -465,7 +669,13 @@ pub struct RasterSource {
     pub colour: Option<ColourSource>,
     /// Metres per stored unit.
     pub scale: f64,
+    /// The surface the rasters lie on.
+    pub datum: Datum,
 }
+
+/// The description token naming the vertical datum the elevation sources
+/// were in (`planet-build sample` reads it back to print heights in it).
+pub const VERTICAL_TOKEN: &str = "vertical-datum=";
 
 /// Quantise metres to stored units.
 #[inline]
@@ -488,13 +698,19 @@ impl GridSource for RasterSource {
                 .collect()
         };
         let (us, vs) = (axis(b.x), axis(b.y));
-        let mut rd = self.elevation.reader();
-        for j in 0..=w {
-            for i in 0..=w {
-                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(us[i], vs[j])));
-                let m = rd.sample(la.to_degrees(), lo.to_degrees())?;
-                out[j * (w + 1) + i] = quantise(m, self.scale);
+        let mut dirs = Vec::with_capacity((w + 1) * (w + 1));
+        for &v in &vs {
+            for &u in &us {
+                dirs.push(normalize(b.face.cube_point(u, v)));
             }
+        }
+        let mut pts = GridPoints::new(&dirs);
+        let mut m = vec![0f64; dirs.len()];
+        self.elevation
+            .reader()
+            .sample_grid(&mut pts, w + 1, w + 1, &mut m)?;
+        for (o, v) in out.iter_mut().zip(&m) {
+            *o = quantise(*v, self.scale);
         }
         Ok(())
     }
@@ -511,23 +727,31 @@ impl GridSource for RasterSource {
                 .collect()
         };
         let (us, vs) = (axis(b.x), axis(b.y));
-        let mut rd = c.tiff.reader();
-        let mut out = Vec::with_capacity(w * w);
+        let mut dirs = Vec::with_capacity(w * w);
         for &v in &vs {
             for &u in &us {
-                let (la, lo) = lat_lon_from_direction(normalize(b.face.cube_point(u, v)));
-                out.push(ColourSource::sample_with(
-                    &mut rd,
-                    la.to_degrees(),
-                    lo.to_degrees(),
-                )?);
+                dirs.push(normalize(b.face.cube_point(u, v)));
             }
+        }
+        let mut px = Vec::new();
+        let mut pts = GridPoints::new(&dirs);
+        c.tiff.pixels_of_grid(&mut pts, w, w, &mut px);
+        let mut rd = c.tiff.reader();
+        let mut out = Vec::with_capacity(w * w);
+        for (k, &(col, row)) in px.iter().enumerate() {
+            out.push(if col.is_finite() {
+                ColourSource::sample_px(&mut rd, col, row)?
+            } else {
+                // Outside the raster's box: its nearest edge, as before.
+                let (la, lo) = pts.lat_lon(k);
+                ColourSource::sample_with(&mut rd, la, lo)?
+            });
         }
         Ok(out)
     }
 
     fn datum(&self) -> Datum {
-        Datum::WGS84
+        self.datum
     }
 
     fn elevation_scale(&self) -> f64 {
@@ -540,15 +764,39 @@ impl GridSource for RasterSource {
 
     fn description(&self) -> String {
         let mut s = String::from("planet-build from rasters: elevation");
+        if self.elevation.layers.is_empty() {
+            s.push_str(" none (zero height on the datum)");
+        }
         for l in &self.elevation.layers {
-            s.push_str(&format!(" {} (L{})", l.tiff.path().display(), l.level));
+            s.push_str(&format!(
+                " {} ({}, {}, L{})",
+                l.tiff.path().display(),
+                l.tiff.crs.name,
+                l.vertical,
+                l.level
+            ));
         }
         if let Some(c) = &self.colour {
             s.push_str(&format!(
-                "; colour {} (L{})",
+                "; colour {} ({}, L{})",
                 c.tiff.path().display(),
+                c.tiff.crs.name,
                 c.level
             ));
+        }
+        // One vertical datum for the whole database where the sources
+        // share one; heights are stored ellipsoidal in any case.
+        let mut v = self.elevation.layers.iter().map(|l| l.vertical);
+        if let Some(first) = v.next() {
+            if v.all(|x| x == first) {
+                s.push_str(&format!(
+                    "; heights stored above the ellipsoid; {VERTICAL_TOKEN}{first}"
+                ));
+            } else {
+                s.push_str(&format!(
+                    "; heights stored above the ellipsoid; {VERTICAL_TOKEN}mixed"
+                ));
+            }
         }
         s
     }

@@ -57,7 +57,7 @@ fn int16_with_nodata_pixel_is_area() {
     assert!(!t.pixel_is_point);
     assert_eq!(t.nodata, Some(-9999.0));
     // Pixel-is-area: pixel (0,0)'s value is at its centre (10.5°E, 49.5°N).
-    assert_eq!((t.lon0, t.lat0), (10.5, 49.5));
+    assert_eq!((t.x0, t.y0), (10.5, 49.5));
     assert!(t.elevation(1, 1).unwrap().is_nan());
     assert_eq!(t.elevation(2, 1).unwrap(), 220.0);
     let s = ElevationStack::open(&[p.as_path()], 1 << 20).unwrap();
@@ -127,30 +127,35 @@ fn float32_pixel_is_point() {
     assert_eq!(t.kind, SampleKind::F32);
     assert!(t.pixel_is_point);
     // Pixel-is-point: pixel (0,0)'s value is exactly at the tie point.
-    assert_eq!((t.lon0, t.lat0), (10.0, 50.0));
+    assert_eq!((t.x0, t.y0), (10.0, 50.0));
     let s = ElevationStack::open(&[p.as_path()], 1 << 20).unwrap();
     assert_eq!(s.sample(50.0, 10.0).unwrap(), 1.5);
     assert!((s.sample(49.5, 10.5).unwrap() - 3.0).abs() < 1e-9);
 }
 
 #[test]
-fn projected_crs_is_refused() {
+fn unknown_or_unusable_crs_is_refused_naming_it() {
     let dir = tempfile::tempdir().unwrap();
-    let p = dir.path().join("utm.tif");
+    // A projected CRS by an EPSG code that does not exist.
+    let p = dir.path().join("unknown.tif");
     write_tiff!(
         &p,
         colortype::GrayI16,
         2,
         2,
         &[0i16; 4],
-        geo_keys(1, 1, &[3072, 0, 1, 32610]),
+        geo_keys(1, 1, &[3072, 0, 1, 1234]),
         None::<&str>
     );
     match GeoTiff::open(&p, 1 << 20) {
-        Err(e @ GeoError::WrongCrs { .. }) => assert!(e.to_string().contains("wrong CRS")),
+        Err(e @ GeoError::WrongCrs { .. }) => {
+            let m = e.to_string();
+            assert!(m.contains("1234") && m.contains("unknown.tif"), "{m}")
+        }
         Err(e) => panic!("unexpected error {e}"),
-        Ok(_) => panic!("projected CRS accepted"),
+        Ok(_) => panic!("unknown CRS accepted"),
     }
+    // NAD27 needs datum-shift grids PROJ 4 style transforms do not ship.
     let q = dir.path().join("nad27.tif");
     write_tiff!(
         &q,
@@ -161,10 +166,26 @@ fn projected_crs_is_refused() {
         geo_keys(2, 1, &[2048, 0, 1, 4267]),
         None::<&str>
     );
-    assert!(matches!(
-        GeoTiff::open(&q, 1 << 20),
-        Err(GeoError::WrongCrs { .. })
-    ));
+    match GeoTiff::open(&q, 1 << 20) {
+        Err(e @ GeoError::WrongCrs { .. }) => {
+            assert!(e.to_string().contains("EPSG:4267"), "{e}")
+        }
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("NAD27 accepted"),
+    }
+    // A projected CRS by a known code opens.
+    let u = dir.path().join("utm.tif");
+    write_tiff!(
+        &u,
+        colortype::GrayI16,
+        2,
+        2,
+        &[0i16; 4],
+        geo_keys(1, 1, &[3072, 0, 1, 32610]),
+        None::<&str>
+    );
+    let t = GeoTiff::open(&u, 1 << 20).unwrap();
+    assert!(!t.crs.geographic);
 }
 
 #[test]
@@ -305,4 +326,72 @@ fn void_on_steep_slope_over_low_coarse_is_no_pit() {
             stack.len()
         );
     }
+}
+
+/// A synthetic planetary GeoTIFF whose GeoKeys declare a user-defined
+/// geographic CRS on a sphere of 1 737 400 m (GeographicType, datum and
+/// ellipsoid 32767, GeogSemiMajorAxis and GeogSemiMinorAxis in the double
+/// parameters): it builds a sphere of that radius with no option, and its
+/// heights are not converted with an Earth geoid.
+#[test]
+fn user_defined_moon_sphere_builds_a_sphere_of_its_radius() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("moon.tif");
+    // 36 × 18 pixels of 10°, global; heights vary with longitude.
+    let data: Vec<f32> = (0..18 * 36)
+        .map(|i| (i % 36) as f32 * 100.0 - 1000.0)
+        .collect();
+    let keys: Vec<u16> = vec![
+        1, 1, 0, 7, //
+        1024, 0, 1, 2, // GTModelType geographic
+        1025, 0, 1, 1, // pixel-is-area
+        2048, 0, 1, 32767, // GeographicType user-defined
+        2050, 0, 1, 32767, // GeogGeodeticDatum user-defined
+        2054, 0, 1, 9102, // degrees
+        2057, 34736, 1, 0, // GeogSemiMajorAxis = doubles[0]
+        2058, 34736, 1, 1, // GeogSemiMinorAxis = doubles[1]
+    ];
+    {
+        let mut enc = TiffEncoder::new(File::create(&p).unwrap()).unwrap();
+        let mut img = enc.new_image::<colortype::Gray32Float>(36, 18).unwrap();
+        let d = img.encoder();
+        d.write_tag(Tag::ModelPixelScaleTag, &[10.0f64, 10.0, 0.0][..])
+            .unwrap();
+        d.write_tag(
+            Tag::ModelTiepointTag,
+            &[0.0f64, 0.0, 0.0, -180.0, 90.0, 0.0][..],
+        )
+        .unwrap();
+        d.write_tag(Tag::GeoKeyDirectoryTag, &keys[..]).unwrap();
+        d.write_tag(Tag::GeoDoubleParamsTag, &[1_737_400.0f64, 1_737_400.0][..])
+            .unwrap();
+        img.write_data(&data).unwrap();
+    }
+    let t = GeoTiff::open(&p, 1 << 20).unwrap();
+    assert_eq!(
+        t.crs.datum,
+        planet_core::Datum::Sphere {
+            radius: 1_737_400.0
+        }
+    );
+    let out = dir.path().join("moon.db");
+    planet_preprocess::build_rasters(&[p.as_path()], None, &out, &Default::default()).unwrap();
+    let s = planet_preprocess::db::Sampler::open(&out).unwrap();
+    assert_eq!(
+        s.header().datum,
+        planet_core::Datum::Sphere {
+            radius: 1_737_400.0
+        }
+    );
+    assert_eq!(
+        s.header().datum.body(),
+        Some(planet_core::datum::Body::Moon)
+    );
+    assert_eq!(
+        s.vertical_datum(),
+        Some(planet_preprocess::geoid::VerticalDatum::Ellipsoid)
+    );
+    // Pixel (18, 9)'s value (800 m) is at its centre (5°E, 5°S): no geoid.
+    let v = s.sample(-5.0, 5.0).unwrap().metres;
+    assert!((v - 800.0).abs() < 1.0, "{v}");
 }

@@ -195,6 +195,7 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
 }
 
 fn main() -> std::process::ExitCode {
+    planet_core::pipe::exit_quietly_on_broken_pipe();
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

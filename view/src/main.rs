@@ -253,6 +253,7 @@ fn init_logging() {
 }
 
 fn main() {
+    planet_core::pipe::exit_quietly_on_broken_pipe();
     init_logging();
     let cli = Cli::parse();
     let r = match cli.command {
