@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! planet-server --config /etc/planet/server.toml [--log-format json]
-//! planet-server --database DB --listen ADDR --dev-cert [--metrics ADDR] [--token T]
+//! planet-server --database DB --listen ADDR --dev-cert [--metrics ADDR] [--token T] [--dev]
 //! planet-server healthcheck --url http://127.0.0.1:9100/healthz
 //! ```
 //! SIGHUP re-opens the database files; SIGTERM / SIGINT drain and exit.
@@ -84,6 +84,10 @@ struct RunArgs {
     /// its SHA-256 fingerprint on stdout.
     #[arg(long, conflicts_with_all = ["cert", "key"])]
     dev_cert: bool,
+    /// Development mode: accept empty, short or placeholder tokens (implied
+    /// by --dev-cert and by a config file without cert/key).
+    #[arg(long)]
+    dev: bool,
     /// Ceiling of QUIC path-MTU discovery in bytes (overrides the config;
     /// default 1452). Clients bound it by their own `max_udp_payload_size`
     /// (planet clients: 1472, or 16384 to a loopback server); 16384 helps
@@ -190,6 +194,7 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     } else if args.database.is_some() {
         bail!("--database mode needs --dev-cert or --cert/--key");
     }
+    cfg.dev = args.dev || matches!(cfg.tls, TlsSource::DevCert);
     cfg.validate()?;
     Ok(cfg)
 }
