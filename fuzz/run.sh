@@ -9,7 +9,8 @@
 # copy it into fuzz/regressions/TARGET/ (and fix the bug):
 # `cargo test -p planet-server --test fuzz_regressions` replays every file of
 # fuzz/regressions/TARGET/ and fuzz/corpus/TARGET/ without cargo-fuzz.
-# Targets: protocol_frames, db_record, db_header (planet-core/-protocol) and
+# Targets: protocol_frames, db_record, db_header (planet-core/-protocol),
+# control_session (the server's control-stream state machine, stateful) and
 # server_config (planet-server's TOML parsing and validation).
 set -euo pipefail
 cd "$(dirname "$0")"
