@@ -13,6 +13,7 @@
 //! zero_rtt = true                   # accept 0-RTT Hello on resumed sessions
 //! initial_rtt_ms = 100              # RTT assumed before the first sample
 //! handshake_timeout_ms = 5000       # whole pre-auth phase (QUIC, Hello, Welcome)
+//! handshake_timeout_under_load_ms = 1000  # the same beyond retry_above_pending
 //! write_timeout_ms = 30000          # any one write on behalf of a peer
 //! max_pending_handshakes = 256      # pre-auth connections (own budget)
 //! retry_above_pending = 64          # QUIC Retry beyond this many pending
@@ -155,6 +156,8 @@ pub const DEFAULT_MAX_CONNECTIONS: usize = 2000;
 pub const DEFAULT_IDLE_TIMEOUT_MS: u32 = 30_000;
 /// Default [`ServerConfig::handshake_timeout`].
 pub const DEFAULT_HANDSHAKE_TIMEOUT_MS: u32 = 5_000;
+/// Default [`ServerConfig::handshake_timeout_under_load`].
+pub const DEFAULT_HANDSHAKE_TIMEOUT_UNDER_LOAD_MS: u32 = 1_000;
 /// Default [`ServerConfig::write_timeout`].
 pub const DEFAULT_WRITE_TIMEOUT_MS: u32 = 30_000;
 /// Default [`ServerConfig::max_pending_handshakes`].
@@ -204,7 +207,10 @@ pub struct ServerConfig {
     pub metrics: Option<SocketAddr>,
     /// Certificate source.
     pub tls: TlsSource,
-    /// Connections beyond this are closed with `CONNECTION_CLOSED_BUSY`.
+    /// Established sessions at once: a `Hello` beyond it is refused with
+    /// `server_busy` (and the connection closed with that code).
+    /// Unauthenticated connections count against `max_pending_handshakes`
+    /// instead.
     pub max_connections: usize,
     /// QUIC idle timeout (also announced in `Limits.idle_timeout_ms`).
     pub idle_timeout_ms: u32,
@@ -256,6 +262,11 @@ pub struct ServerConfig {
     /// connection is closed with `timeout` and counted as
     /// `planet_handshakes_total{outcome="timeout"}`.
     pub handshake_timeout: Duration,
+    /// The handshake deadline of connections accepted while more than
+    /// `retry_above_pending` are pending (under load): a client that is not
+    /// flooding needs a few round trips, while every slot a flooder holds
+    /// costs it a handshake per deadline.
+    pub handshake_timeout_under_load: Duration,
     /// Longest one write on behalf of a peer may block (a response head or
     /// body, an error reply): a client that stops reading, or advertises a
     /// zero receive window, loses the stream (`timeout`), not a slot forever.
@@ -305,6 +316,7 @@ struct FileConfig {
     zero_rtt: Option<bool>,
     initial_rtt_ms: Option<u32>,
     handshake_timeout_ms: Option<u32>,
+    handshake_timeout_under_load_ms: Option<u32>,
     write_timeout_ms: Option<u32>,
     max_pending_handshakes: Option<usize>,
     retry_above_pending: Option<usize>,
@@ -411,6 +423,9 @@ impl ServerConfig {
             zero_rtt: true,
             initial_rtt_ms: DEFAULT_INITIAL_RTT_MS,
             handshake_timeout: Duration::from_millis(u64::from(DEFAULT_HANDSHAKE_TIMEOUT_MS)),
+            handshake_timeout_under_load: Duration::from_millis(u64::from(
+                DEFAULT_HANDSHAKE_TIMEOUT_UNDER_LOAD_MS,
+            )),
             write_timeout: Duration::from_millis(u64::from(DEFAULT_WRITE_TIMEOUT_MS)),
             max_pending_handshakes: DEFAULT_MAX_PENDING_HANDSHAKES,
             retry_above_pending: DEFAULT_RETRY_ABOVE_PENDING,
@@ -484,6 +499,9 @@ impl ServerConfig {
         }
         if let Some(t) = file.handshake_timeout_ms {
             cfg.handshake_timeout = Duration::from_millis(u64::from(t));
+        }
+        if let Some(t) = file.handshake_timeout_under_load_ms {
+            cfg.handshake_timeout_under_load = Duration::from_millis(u64::from(t));
         }
         if let Some(t) = file.write_timeout_ms {
             cfg.write_timeout = Duration::from_millis(u64::from(t));
@@ -582,6 +600,13 @@ impl ServerConfig {
         }
         if self.handshake_timeout.is_zero() || self.handshake_timeout > Duration::from_secs(120) {
             return bad("handshake_timeout_ms must be in 1..=120000".into());
+        }
+        if self.handshake_timeout_under_load.is_zero()
+            || self.handshake_timeout_under_load > self.handshake_timeout
+        {
+            return bad(
+                "handshake_timeout_under_load_ms must be in 1..=handshake_timeout_ms".into(),
+            );
         }
         if self.write_timeout.is_zero() {
             return bad("write_timeout_ms must be at least 1".into());

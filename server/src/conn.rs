@@ -41,25 +41,42 @@ fn code(c: u32) -> VarInt {
     VarInt::from_u32(c)
 }
 
-/// One established session of a tenant (`TenantConfig::max_connections`).
-struct SessionSlot(Arc<TenantRt>);
+/// Takes one of `max` places of `counter` (0 = unlimited).
+fn take_place(counter: &std::sync::atomic::AtomicUsize, max: usize) -> bool {
+    counter
+        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+            (max == 0 || n < max).then_some(n + 1)
+        })
+        .is_ok()
+}
+
+/// One established session: a place of the server's `max_connections` and
+/// of its tenant's `TenantConfig::max_connections`.
+struct SessionSlot(Arc<TenantRt>, Arc<Shared>);
+
+/// Why a session place was refused.
+enum NoPlace {
+    Server,
+    Tenant,
+}
 
 impl SessionSlot {
-    fn try_new(tenant: &Arc<TenantRt>) -> Option<SessionSlot> {
-        let max = tenant.cfg.max_connections as usize;
-        tenant
-            .sessions
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
-                (max == 0 || n < max).then_some(n + 1)
-            })
-            .ok()?;
-        Some(SessionSlot(Arc::clone(tenant)))
+    fn try_new(tenant: &Arc<TenantRt>, shared: &Arc<Shared>) -> Result<SessionSlot, NoPlace> {
+        if !take_place(&shared.sessions, shared.cfg.max_connections) {
+            return Err(NoPlace::Server);
+        }
+        if !take_place(&tenant.sessions, tenant.cfg.max_connections as usize) {
+            shared.sessions.fetch_sub(1, Ordering::AcqRel);
+            return Err(NoPlace::Tenant);
+        }
+        Ok(SessionSlot(Arc::clone(tenant), Arc::clone(shared)))
     }
 }
 
 impl Drop for SessionSlot {
     fn drop(&mut self) {
         self.0.sessions.fetch_sub(1, Ordering::AcqRel);
+        self.1.sessions.fetch_sub(1, Ordering::AcqRel);
     }
 }
 
@@ -109,7 +126,7 @@ struct ConnCtx {
 /// The [`Authorizer`] for one connection: checks the hello against the
 /// configuration and remembers the tenant and database version it chose.
 struct ConnAuth<'a> {
-    shared: &'a Shared,
+    shared: &'a Arc<Shared>,
     peer: std::net::IpAddr,
     chosen: RefCell<Option<(SessionSlot, Arc<MappedDb>)>>,
 }
@@ -160,14 +177,32 @@ impl Authorizer for ConnAuth<'_> {
                 ),
             ));
         }
-        let Some(session) = SessionSlot::try_new(tenant) else {
-            return Err(ErrorMsg::new(
-                ErrorCode::ServerBusy,
-                format!(
-                    "tenant connection limit ({}) reached",
-                    tenant.cfg.max_connections
-                ),
-            ));
+        let session = match SessionSlot::try_new(tenant, self.shared) {
+            Ok(s) => s,
+            Err(NoPlace::Server) => {
+                self.shared
+                    .metrics
+                    .connections_total
+                    .with_label_values(&["rejected"])
+                    .inc();
+                tracing::warn!(
+                    max = self.shared.cfg.max_connections,
+                    "connection limit reached, refusing"
+                );
+                return Err(ErrorMsg::new(
+                    ErrorCode::ServerBusy,
+                    "server connection limit reached",
+                ));
+            }
+            Err(NoPlace::Tenant) => {
+                return Err(ErrorMsg::new(
+                    ErrorCode::ServerBusy,
+                    format!(
+                        "tenant connection limit ({}) reached",
+                        tenant.cfg.max_connections
+                    ),
+                ))
+            }
         };
         let db = slot.current();
         let welcome = Welcome {

@@ -92,6 +92,8 @@ pub(crate) struct Shared {
     pub(crate) metrics: Metrics,
     http: Arc<metrics::HttpState>,
     active: AtomicUsize,
+    /// Established sessions (`max_connections`).
+    pub(crate) sessions: AtomicUsize,
     /// Connections not yet authenticated.
     pending: AtomicUsize,
     /// Open connections (pending and established) per client IP.
@@ -318,6 +320,7 @@ impl Server {
             metrics,
             http,
             active: AtomicUsize::new(0),
+            sessions: AtomicUsize::new(0),
             pending: AtomicUsize::new(0),
             per_address: Mutex::new(HashMap::new()),
             record_alerts: limit::RecordAlerts::default(),
@@ -443,19 +446,25 @@ async fn accept_loop(
             incoming.refuse();
             continue;
         };
-        let mut pending = PendingGuard::new(&shared);
+        // One deadline for the whole unauthenticated phase, shorter under
+        // load: a client that is not flooding completes in a few round
+        // trips, while each slot a flooder holds costs it a handshake per
+        // deadline.
+        let timeout = if pending >= shared.cfg.retry_above_pending {
+            shared.cfg.handshake_timeout_under_load
+        } else {
+            shared.cfg.handshake_timeout
+        };
+        let deadline = tokio::time::Instant::now() + timeout;
+        let pending = PendingGuard::new(&shared);
         let shared = Arc::clone(&shared);
         let shutdown = shutdown.clone();
         conns.spawn(async move {
             let _address = address;
-            // One deadline for the whole unauthenticated phase.
-            let deadline = tokio::time::Instant::now() + shared.cfg.handshake_timeout;
-            let over = shared.active.fetch_add(1, Ordering::AcqRel) >= shared.cfg.max_connections;
+            shared.active.fetch_add(1, Ordering::AcqRel);
             shared.metrics.connections_active.inc();
             let guard = ActiveGuard(Arc::clone(&shared));
-            // A refused connection completes its handshake first: a close
-            // sent during the handshake cannot carry the application code.
-            let handshake = handshake(incoming, shared.cfg.zero_rtt && !over);
+            let handshake = handshake(incoming, shared.cfg.zero_rtt);
             let conn = match tokio::time::timeout_at(deadline, handshake).await {
                 Ok(Some(conn)) => conn,
                 Ok(None) => {
@@ -468,14 +477,6 @@ async fn accept_loop(
                     return;
                 }
             };
-            if over {
-                count_rejected(&shared);
-                tracing::warn!(%peer, max = shared.cfg.max_connections, "connection limit reached, refusing");
-                conn.close(VarInt::from_u32(quic::CONNECTION_CLOSED_BUSY), b"server busy");
-                pending.release();
-                drop(guard);
-                return;
-            }
             shared
                 .metrics
                 .connections_total
@@ -494,14 +495,6 @@ async fn accept_loop(
         tracing::warn!("connections still open after the grace period: closing them");
         conns.shutdown().await;
     }
-}
-
-fn count_rejected(shared: &Shared) {
-    shared
-        .metrics
-        .connections_total
-        .with_label_values(&["rejected"])
-        .inc();
 }
 
 /// Runs the server side of the handshake. With 0-RTT the connection is

@@ -47,8 +47,8 @@ pub enum RequestOutcome {
     Storage,
 }
 
-/// Label values of `planet_connections_total{outcome}`: accepted, rejected
-/// at `max_connections` (after the QUIC handshake, closed with
+/// Label values of `planet_connections_total{outcome}`: accepted (QUIC
+/// handshake done), rejected at `max_connections` (its hello refused with
 /// `server_busy`), refused by the pending-handshake or per-address budget
 /// (before any cryptography), asked to validate its address (Retry).
 pub const CONNECTION_OUTCOMES: [&str; 4] = ["accepted", "rejected", "refused", "retry"];
@@ -199,7 +199,7 @@ impl Metrics {
         let connections_total = IntCounterVec::new(
             Opts::new(
                 "planet_connections_total",
-                "Incoming connections by outcome: accepted, rejected (max_connections, after the QUIC handshake), refused (pending-handshake or per-address budget, before any cryptography), retry (asked to validate its address)",
+                "Incoming connections by outcome: accepted (QUIC handshake done), rejected (hello refused at max_connections), refused (pending-handshake or per-address budget, before any cryptography), retry (asked to validate its address)",
             ),
             &["outcome"],
         )?;

@@ -220,7 +220,7 @@ fn connection_and_stream_limits() {
             ),
             10.0
         );
-        assert_eq!(h.active_connections(), 5);
+        wait_active(&h, 5, Duration::from_secs(3)).await;
 
         // Stream limit: streams whose request never completes stay open
         // until REQUEST_READ_TIMEOUT; the server allows max_in_flight +
@@ -644,11 +644,14 @@ fn zero_window_clients_lose_their_slots_within_the_handshake_deadline() {
     // then advertise a zero receive window: the server cannot write the
     // Welcome or the error reply. Until 2026-11-24 those writes had no
     // deadline, and such clients held `max_connections` slots forever.
+    // Unauthenticated connections now count against their own budget,
+    // `max_pending_handshakes`, which they fill here.
     let _g = serial();
     let rt = runtime();
     let dir = tempfile::tempdir().unwrap();
     let (mut cfg, recs) = two_tenant_config(dir.path());
-    cfg.max_connections = 6;
+    cfg.max_pending_handshakes = 6;
+    cfg.retry_above_pending = 100;
     cfg.handshake_timeout = Duration::from_secs(1);
     let h = rt.block_on(Server::start(cfg)).unwrap();
     rt.block_on(async {
@@ -678,7 +681,7 @@ fn zero_window_clients_lose_their_slots_within_the_handshake_deadline() {
             held.push((conn, send, recv, *code));
         }
         assert_eq!(h.active_connections(), 6);
-        // Every slot is taken: a fresh client is refused...
+        // Every pending slot is taken: a fresh client is refused...
         let busy = connect(&h, acme()).await;
         assert!(busy.is_err(), "a 7th connection was accepted");
         // ...until the handshake deadline frees them.
@@ -697,6 +700,10 @@ fn zero_window_clients_lose_their_slots_within_the_handshake_deadline() {
         assert_eq!(m("malformed"), 2.0);
         assert_eq!(m("ok"), 1.0);
         assert_eq!(metric(&text, "planet_handshakes_pending", &[]), 0.0);
+        assert_eq!(
+            metric(&text, "planet_connections_total", &[("outcome", "refused")]),
+            1.0
+        );
         good.close();
         drop(held);
         h.shutdown().await;
@@ -814,7 +821,8 @@ fn pending_handshakes_have_their_own_budget_and_retry() {
             metric(&text, "planet_handshakes_total", &[("outcome", "timeout")]),
             4.0
         );
-        // Authenticated sessions do not count against the pending budget.
+        // Authenticated sessions do not count against the pending budget,
+        // nor pending connections against max_connections.
         let mut sessions = Vec::new();
         for _ in 0..6 {
             sessions.push(connect(&h, acme()).await.unwrap().0);
