@@ -98,6 +98,10 @@ struct RunArgs {
     /// config; default 65536, QUIC's own default is about 14 720).
     #[arg(long)]
     initial_window: Option<u64>,
+    /// Connections one client IP may hold (overrides the config; default
+    /// 64). Benchmarks that simulate many clients from one address raise it.
+    #[arg(long)]
+    max_connections_per_address: Option<usize>,
     /// Refuse 0-RTT data (resuming clients then wait one more round trip
     /// for their Welcome). Overrides `zero_rtt` in the config.
     #[arg(long)]
@@ -180,6 +184,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if let Some(w) = args.initial_window {
         cfg.initial_window = w;
+    }
+    if let Some(m) = args.max_connections_per_address {
+        cfg.max_connections_per_address = m;
     }
     if args.no_zero_rtt {
         cfg.zero_rtt = false;
