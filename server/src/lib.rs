@@ -451,7 +451,10 @@ async fn accept_loop(
         // trips, while each slot a flooder holds costs it a handshake per
         // deadline.
         let timeout = if pending >= shared.cfg.retry_above_pending {
-            shared.cfg.handshake_timeout_under_load
+            shared
+                .cfg
+                .handshake_timeout_under_load
+                .min(shared.cfg.handshake_timeout)
         } else {
             shared.cfg.handshake_timeout
         };
