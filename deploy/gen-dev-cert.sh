@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Writes a self-signed certificate and key for local runs of compose.yaml:
 #   deploy/tls/cert.pem, deploy/tls/key.pem  (CN/SAN: localhost, 127.0.0.1, ::1)
+# and, if missing, a random token for the tenant "public": deploy/tokens/public.
 # Clients must trust deploy/tls/cert.pem (or run in their insecure/dev mode).
 # Never use these in production.
 set -euo pipefail
@@ -15,3 +16,10 @@ openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes \
 chmod 0644 "$out/cert.pem"
 chmod 0644 "$out/key.pem"
 echo "wrote $out/cert.pem and $out/key.pem"
+tokens="$here/tokens"
+if [ ! -s "$tokens/public" ]; then
+  mkdir -p "$tokens"
+  openssl rand -hex 32 > "$tokens/public"
+  chmod 0644 "$tokens/public"   # read by uid 10001 in the container
+  echo "wrote $tokens/public (clients send it as the tenant \"public\" token)"
+fi

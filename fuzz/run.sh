@@ -9,9 +9,11 @@
 # copy it into fuzz/regressions/TARGET/ (and fix the bug):
 # `cargo test -p planet-server --test fuzz_regressions` replays every file of
 # fuzz/regressions/TARGET/ and fuzz/corpus/TARGET/ without cargo-fuzz.
-# Targets: protocol_frames, db_record, db_header (planet-core/-protocol) and
-# server_config (planet-server's TOML parsing and validation) and raster_readers
-# (planet-preprocess: GeoTIFF/GeoKeys/CRS readers on untrusted bytes).
+# Targets: protocol_frames, db_record, db_header (planet-core/-protocol),
+# control_session (the server's control-stream state machine, stateful),
+# server_config (planet-server's TOML parsing and validation) and
+# raster_readers (planet-preprocess: GeoTIFF/GeoKeys/CRS readers on untrusted
+# bytes).
 set -euo pipefail
 cd "$(dirname "$0")"
 secs="${FUZZ_SECONDS:-15}"

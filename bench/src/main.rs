@@ -8,8 +8,11 @@
 //! - `server`: QUIC request throughput and latency against nginx (HTTPS
 //!   byte ranges) on the same file and request list.
 //! - `load`: 1000 lightweight streaming clients against one server.
+//! - `hostile`: hostile clients of each kind (zero window, half-open, bad
+//!   token) against one server while a good client streams.
 
 mod flight;
+mod hostile;
 mod load;
 mod plot;
 mod resident;
@@ -46,6 +49,10 @@ enum Command {
     /// Many lightweight streaming clients against one server: load held,
     /// latency, errors, server CPU and memory per connection.
     Load(load::LoadArgs),
+    /// Hostile clients (zero window, half-open, bad token) against one
+    /// server while a good client streams: its throughput and connect time,
+    /// the server's memory per hostile connection.
+    Hostile(hostile::HostileArgs),
 }
 
 fn main() -> Result<()> {
@@ -56,6 +63,7 @@ fn main() -> Result<()> {
         Command::Resident(a) => resident::run(a),
         Command::Server(a) => server_bench::run(a),
         Command::Load(a) => load::run(a),
+        Command::Hostile(a) => hostile::run(a),
     }
 }
 

@@ -394,6 +394,8 @@ impl ServerUnderTest {
                     .arg("--database")
                     .arg(db)
                     .args(["--listen", "127.0.0.1:0", "--dev-cert"])
+                    // Every benchmark client comes from 127.0.0.1.
+                    .args(["--max-connections-per-address", "1000000"])
                     .args(
                         max_udp_payload
                             .map(|m| vec!["--max-udp-payload".to_string(), m.to_string()])
@@ -464,6 +466,8 @@ impl ServerUnderTest {
                 if let Some(m) = max_udp_payload {
                     cfg.max_udp_payload = m;
                 }
+                // Every benchmark client comes from 127.0.0.1.
+                cfg.max_connections_per_address = 1_000_000;
                 let handle = rt.block_on(planet_server::Server::start(cfg))?;
                 Ok(ServerUnderTest {
                     addr: handle.local_addr(),

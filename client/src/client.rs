@@ -26,7 +26,9 @@
 use crate::link_estimate::LinkEstimator;
 use crate::quality::{QualityConfig, QualityController, QualityMode};
 use crate::refinement::{sanitize_tolerance, Footprint, Kind, Policy, Refiner, DEFAULT_MAX_SSE_PX};
-use crate::request_queue::{select_tree_ops, OpKind, QueueConfig, RequestQueue, TreeOp};
+use crate::request_queue::{
+    select_tree_ops, OpKind, QueueConfig, RequestQueue, RetryBackoff, TreeOp,
+};
 use crate::selection::{DrawBlock, Selector};
 use crate::stats::{FrameStats, Totals};
 use crate::tree::{
@@ -222,6 +224,8 @@ pub struct Client {
     r_max: f64,
     pending_ops: Vec<TreeOp>,
     decoding: FastSet<(Tree, BlockId)>,
+    /// Blocks whose load failed or was rejected, held back exponentially.
+    backoff: RetryBackoff,
     jobs: Option<Sender<Job>>,
     done_rx: Receiver<Done>,
     done_tx: Sender<Done>,
@@ -290,6 +294,7 @@ impl Client {
             r_max,
             pending_ops: vec![],
             decoding: FastSet::default(),
+            backoff: RetryBackoff::default(),
             jobs,
             done_rx,
             done_tx,
@@ -439,6 +444,7 @@ impl Client {
             Ok(b) => b,
             Err(e) => {
                 self.last_error = Some(e.to_string());
+                self.backoff.failed(req.tree, req.block, self.clock);
                 return;
             }
         };
@@ -479,6 +485,21 @@ impl Client {
         }
     }
 
+    /// A request failed with its connection (lost, not connected), not
+    /// because of its record: it is forgotten without the per-block
+    /// backoff, so it is requested again as soon as the session reconnects.
+    pub fn connection_failed(&mut self, id: u64, error: TransportError) {
+        if self.queue.take(id).is_some() {
+            self.last_error = Some(error.to_string());
+        }
+    }
+
+    /// Blocks whose failed or rejected load is held back by the per-block
+    /// exponential backoff (a retry is scheduled): the client is not idle.
+    pub fn retries_waiting(&self) -> usize {
+        self.backoff.waiting(self.clock)
+    }
+
     /// One frame: apply finished work, select, request.
     pub fn frame(&mut self, camera: &Camera, dt: f64) -> FrameOutput {
         self.frame += 1;
@@ -495,6 +516,7 @@ impl Client {
             self.decoding.remove(&(d.tree, d.block));
             match d.result {
                 Ok(dec) => {
+                    self.backoff.succeeded(d.tree, &d.block);
                     if self.tree.apply_refine(dec) {
                         stats.refines_applied += 1;
                         applied.push((d.tree, d.block, d.bytes, d.forced));
@@ -503,6 +525,7 @@ impl Client {
                     }
                 }
                 Err(e) => {
+                    self.backoff.failed(d.tree, d.block, self.clock);
                     stats.records_rejected += 1;
                     self.totals.bytes_rejected += d.bytes as u64;
                     self.last_error = Some(format!("{:?} {:?}: {e}", d.tree, d.block));
@@ -563,6 +586,7 @@ impl Client {
             .loads
             .into_iter()
             .filter(|r| !self.decoding.contains(&(r.tree, r.block)))
+            .filter(|r| self.backoff.ready(r.tree, &r.block, self.clock))
             .filter(|r| {
                 let Some(pv) = &predicted else { return true };
                 if r.forced {

@@ -20,6 +20,11 @@
 //!   [`crate::link_estimate`]), and the new requests of one frame by
 //!   [`QueueConfig::max_new_per_frame`] (CesiumJS's priority heap).
 //!
+//! A block whose request failed (transport or server error) or whose record
+//! was rejected (corrupt) is not re-requested at once: [`RetryBackoff`]
+//! holds it back for an exponentially growing delay per block, so a record
+//! that keeps failing is not hammered every frame.
+//!
 //! The split/merge queue ([`select_tree_ops`]) is larger and has no network:
 //! the most important triggered operations, up to a capacity per frame, are
 //! executed at the start of the next frame.
@@ -27,6 +32,54 @@
 use crate::tree::FastMap;
 use planet_core::format::{ChildRef, Tree};
 use planet_core::BlockId;
+
+/// Exponential backoff per block after a failed or rejected load: the
+/// first retry waits [`RetryBackoff::INITIAL`] seconds, each further failure
+/// doubles the wait up to [`RetryBackoff::MAX`]; a success forgets it.
+#[derive(Debug, Default)]
+pub struct RetryBackoff {
+    failed: FastMap<(Tree, BlockId), (u32, f64)>,
+}
+
+impl RetryBackoff {
+    /// Wait after the first failure (seconds).
+    pub const INITIAL: f64 = 0.1;
+    /// Longest wait (seconds).
+    pub const MAX: f64 = 30.0;
+
+    /// Notes a failure of `(tree, block)` at time `now`.
+    pub fn failed(&mut self, tree: Tree, block: BlockId, now: f64) {
+        let e = self.failed.entry((tree, block)).or_insert((0, now));
+        e.0 = e.0.saturating_add(1);
+        let wait = (Self::INITIAL * 2f64.powi(e.0.min(30) as i32 - 1)).min(Self::MAX);
+        e.1 = now + wait;
+    }
+
+    /// Forgets the failures of `(tree, block)` (it loaded).
+    pub fn succeeded(&mut self, tree: Tree, block: &BlockId) {
+        self.failed.remove(&(tree, *block));
+    }
+
+    /// Whether `(tree, block)` may be requested at `now`.
+    pub fn ready(&self, tree: Tree, block: &BlockId, now: f64) -> bool {
+        self.failed.get(&(tree, *block)).is_none_or(|e| now >= e.1)
+    }
+
+    /// Blocks held back at `now` (a retry is scheduled later).
+    pub fn waiting(&self, now: f64) -> usize {
+        self.failed.values().filter(|e| now < e.1).count()
+    }
+
+    /// Blocks currently remembered as failing.
+    pub fn len(&self) -> usize {
+        self.failed.len()
+    }
+
+    /// True when no block is held back.
+    pub fn is_empty(&self) -> bool {
+        self.failed.is_empty()
+    }
+}
 
 /// A triggered load (refine) request.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -358,6 +411,33 @@ mod tests {
             importance: imp,
             forced: false,
         }
+    }
+
+    #[test]
+    fn failing_blocks_back_off_exponentially_until_they_load() {
+        let mut b = RetryBackoff::default();
+        let (t, blk) = (Tree::Elevation, BlockId::root(planet_core::Face::ALL[0]));
+        assert!(b.ready(t, &blk, 0.0));
+        let mut now = 0.0;
+        let mut waits = vec![];
+        for _ in 0..12 {
+            b.failed(t, blk, now);
+            let mut later = now;
+            while !b.ready(t, &blk, later) {
+                later += 0.01;
+            }
+            waits.push(later - now);
+            now = later;
+        }
+        assert!((waits[0] - 0.1).abs() < 0.02, "{waits:?}");
+        assert!((waits[1] - 0.2).abs() < 0.02, "{waits:?}");
+        assert!((waits[4] - 1.6).abs() < 0.02, "{waits:?}");
+        assert!((waits[11] - RetryBackoff::MAX).abs() < 0.02, "{waits:?}");
+        // Another block is not affected; success forgets.
+        let other = blk.children()[0];
+        assert!(b.ready(t, &other, now));
+        b.succeeded(t, &blk);
+        assert!(b.ready(t, &blk, now) && b.is_empty());
     }
 
     #[test]

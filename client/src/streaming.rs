@@ -5,7 +5,8 @@
 //!
 //! 1. drains the session's events: records go to [`Client::deliver`];
 //!    failures are delivered as errors, so the client forgets the request and
-//!    a later frame's selection requests the block again; `Disconnected`
+//!    a later frame's selection requests the block again (after a per-block
+//!    exponential backoff when the record itself failed); `Disconnected`
 //!    keeps the tree (the session reconnects by itself, and requests issued
 //!    meanwhile fail at once and are re-requested after `Connected`);
 //! 2. runs [`Client::frame`];
@@ -177,8 +178,14 @@ impl StreamingClient {
                 NetEvent::Failed { id, error } => {
                     self.counters.failures += 1;
                     self.cancelled.remove(&id);
-                    self.client
-                        .deliver(id, Err(TransportError(error.to_string())));
+                    let e = TransportError(error.to_string());
+                    // A failure of the record backs its block off; one of
+                    // the connection does not (reconnecting is the session's).
+                    if error.is_connection_error() {
+                        self.client.connection_failed(id, e);
+                    } else {
+                        self.client.deliver(id, Err(e));
+                    }
                 }
                 NetEvent::Cancelled { id } => {
                     self.cancelled.remove(&id);

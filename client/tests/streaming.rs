@@ -42,6 +42,7 @@ fn converge(c: &mut Client, s: &mut FakeServer, cam: &Camera, max: usize) -> Fra
             && c.queue().in_flight() == 0
             && c.pending_ops().is_empty()
             && c.decoding() == 0
+            && c.retries_waiting() == 0
             && s.pending() == 0;
         quiet = if idle { quiet + 1 } else { 0 };
         if quiet >= 3 {
@@ -661,4 +662,31 @@ fn memory_budget_bounds_the_resident_tree() {
     assert!(bounded <= budget, "{bounded} > {budget}");
     assert!(tol > 0.01, "the tolerance was coarsened");
     assert!(drawn > 0 && drawn < drawn_free);
+}
+
+#[test]
+fn a_record_that_keeps_failing_is_retried_with_exponential_backoff() {
+    // Root 0 fails every time (a server `storage` error, say): it is
+    // re-requested after 0.1, 0.2, 0.4, 0.8 s..., not every frame.
+    let mut c = client(0);
+    let cam = ground_camera();
+    let failing = db().header.elevation.root_records[0].offset;
+    let mut requests = 0;
+    for _ in 0..120 {
+        let out = c.frame(&cam, 1.0 / 60.0);
+        for o in &out.send {
+            if o.record.offset == failing {
+                requests += 1;
+                c.deliver(o.id, Err(TransportError("storage".into())));
+            } else {
+                c.deliver(o.id, Ok(db().read(&o.record).expect("record")));
+            }
+        }
+    }
+    // In 2 s: the first request, then retries at about 0.1, 0.3, 0.7 and
+    // 1.5 s (frames are 1/60 s apart).
+    assert!(
+        (4..=6).contains(&requests),
+        "{requests} requests in 120 frames"
+    );
 }

@@ -61,16 +61,24 @@ pub enum ErrorCode {
     DuplicateHello = 20,
     /// A request id that is already in flight on this connection.
     DuplicateRequest = 21,
-    /// The peer did not finish sending in time (a request stream that was
-    /// opened but not completed within the server's request-read deadline).
+    /// The peer did not finish sending or receiving in time: a request
+    /// stream not completed within the server's request-read deadline, a
+    /// response not taken within its write deadline, or a connection not
+    /// authenticated within the handshake deadline.
     /// Sent only as a QUIC application code (`stop`/`reset`), never in a
     /// message body; see docs/PROTOCOL.md §6.
     Timeout = 22,
+    /// The server could not read the record from its storage (a database
+    /// file truncated or failing under it). Per request; the session stays
+    /// usable and other records may still be served. Like `Timeout`, sent
+    /// only as a QUIC application code (`reset` of the request stream),
+    /// never in a message body; see docs/PROTOCOL.md §6.
+    Storage = 23,
 }
 
 impl ErrorCode {
     /// Every code, in numeric order (handy to pre-register metric labels).
-    pub const ALL: [ErrorCode; 22] = [
+    pub const ALL: [ErrorCode; 23] = [
         ErrorCode::UnsupportedVersion,
         ErrorCode::Unauthorized,
         ErrorCode::UnknownDatabase,
@@ -93,6 +101,7 @@ impl ErrorCode {
         ErrorCode::DuplicateHello,
         ErrorCode::DuplicateRequest,
         ErrorCode::Timeout,
+        ErrorCode::Storage,
     ];
 
     /// The numeric wire value.
@@ -125,6 +134,7 @@ impl ErrorCode {
             20 => ErrorCode::DuplicateHello,
             21 => ErrorCode::DuplicateRequest,
             22 => ErrorCode::Timeout,
+            23 => ErrorCode::Storage,
             _ => return None,
         })
     }
@@ -154,6 +164,7 @@ impl ErrorCode {
             ErrorCode::DuplicateHello => "duplicate_hello",
             ErrorCode::DuplicateRequest => "duplicate_request",
             ErrorCode::Timeout => "timeout",
+            ErrorCode::Storage => "storage",
         }
     }
 
@@ -259,6 +270,7 @@ mod tests {
         assert_eq!(ErrorCode::DuplicateRequest as u16, 21);
         assert_eq!(ErrorCode::Timeout as u16, 22);
         assert_eq!(ErrorCode::Timeout.as_str(), "timeout");
+        assert_eq!(ErrorCode::Storage as u16, 23);
     }
 
     #[test]
@@ -269,7 +281,7 @@ mod tests {
             assert_eq!(ErrorCode::from_quic(u64::from(code.to_quic())), Some(*code));
         }
         assert_eq!(ErrorCode::from_u16(0), None);
-        assert_eq!(ErrorCode::from_u16(23), None);
+        assert_eq!(ErrorCode::from_u16(24), None);
         assert_eq!(ErrorCode::from_quic(1 << 20), None);
     }
 

@@ -26,7 +26,10 @@ pub const MAX_ERROR_MESSAGE_LEN: usize = 1024;
 pub const MAX_HEADER_LEN: usize = 8 * 1024 * 1024;
 
 /// Client -> server, first message on the control stream.
-#[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
+///
+/// `Debug` prints the token as `<redacted>`, so that neither a log line nor
+/// the handshake state machines that hold a `Hello` reveal it.
+#[derive(Clone, PartialEq, Eq, Hash, Encode, Decode)]
 pub struct Hello {
     /// Protocol version the client speaks ([`crate::PROTOCOL_VERSION`]).
     pub version: u16,
@@ -36,6 +39,17 @@ pub struct Hello {
     pub token: String,
     /// Name of the database the client wants to stream.
     pub database: String,
+}
+
+impl std::fmt::Debug for Hello {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Hello")
+            .field("version", &self.version)
+            .field("tenant", &self.tenant)
+            .field("token", &"<redacted>")
+            .field("database", &self.database)
+            .finish()
+    }
 }
 
 impl Hello {

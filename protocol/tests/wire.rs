@@ -153,3 +153,28 @@ fn protocol_doc_shows_the_hello_bytes() {
         "docs/PROTOCOL.md must contain the Hello example as the line {hex}"
     );
 }
+
+#[test]
+fn the_error_code_table_of_the_document_is_the_code() {
+    // docs/PROTOCOL.md §6: one row per code, `| N | `name` | ...`.
+    let doc = include_str!("../../docs/PROTOCOL.md");
+    let section = doc
+        .split("## 6. Error codes")
+        .nth(1)
+        .and_then(|s| s.split("\n## ").next())
+        .expect("§6 in docs/PROTOCOL.md");
+    let mut rows = Vec::new();
+    for line in section.lines() {
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        if cells.len() > 3 {
+            if let Ok(n) = cells[1].parse::<u16>() {
+                rows.push((n, cells[2].trim_matches('`').to_string()));
+            }
+        }
+    }
+    let code: Vec<(u16, String)> = ErrorCode::ALL
+        .iter()
+        .map(|c| (c.as_u16(), c.as_str().to_string()))
+        .collect();
+    assert_eq!(rows, code);
+}

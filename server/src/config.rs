@@ -3,7 +3,7 @@
 //!
 //! ```toml
 //! listen = "0.0.0.0:4433"          # QUIC (UDP)
-//! metrics = "0.0.0.0:9100"         # HTTP /metrics /healthz /readyz (optional)
+//! metrics = "127.0.0.1:9100"       # HTTP /metrics /healthz /readyz (optional; keep private)
 //! cert = "/etc/planet/tls/cert.pem"
 //! key = "/etc/planet/tls/key.pem"
 //! max_connections = 2000
@@ -12,6 +12,14 @@
 //! initial_window = 65536            # congestion window of a new connection (bytes)
 //! zero_rtt = true                   # accept 0-RTT Hello on resumed sessions
 //! initial_rtt_ms = 100              # RTT assumed before the first sample
+//! handshake_timeout_ms = 5000       # whole pre-auth phase (QUIC, Hello, Welcome)
+//! handshake_timeout_under_load_ms = 1000  # the same beyond retry_above_pending
+//! write_timeout_ms = 30000          # any one write on behalf of a peer
+//! max_pending_handshakes = 256      # pre-auth connections (own budget)
+//! retry_above_pending = 64          # QUIC Retry beyond this many pending
+//! max_connections_per_address = 64  # per client IP, pending + established
+//! max_failed_hellos_per_minute = 30 # per client IP; then `rate_limited`
+//! storage = "pread"                 # "pread" | "mmap" | "auto"
 //!
 //! [[database]]
 //! name = "earth"
@@ -23,6 +31,8 @@
 //! databases = ["earth"]
 //! max_in_flight = 64
 //! max_bytes_per_second = 0                  # 0 = unlimited
+//! max_connections = 0                       # sessions of this tenant; 0 = unlimited
+//! max_requests_per_second = 0               # request budget; 0 = unlimited
 //! ```
 //!
 //! Relative paths in the file are resolved against the file's directory.
@@ -35,6 +45,8 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::Deserialize;
+
+pub use crate::token::Token;
 
 /// Why a configuration is invalid.
 #[derive(Debug, thiserror::Error)]
@@ -89,8 +101,8 @@ pub struct DatabaseConfig {
 pub struct TenantConfig {
     /// Tenant name (`Hello.tenant`).
     pub name: String,
-    /// Bearer token (compared in constant time).
-    pub token: String,
+    /// Bearer token: only its SHA-256 is kept, compared in constant time.
+    pub token: Token,
     /// Databases this tenant may open.
     pub databases: Vec<String>,
     /// Requests one connection may have outstanding.
@@ -98,6 +110,28 @@ pub struct TenantConfig {
     /// Send budget in bytes per second shared by all the tenant's
     /// connections (token bucket); 0 = unlimited.
     pub max_bytes_per_second: u64,
+    /// Established sessions the tenant may hold at once; 0 = unlimited.
+    /// Beyond it a `Hello` is refused with `server_busy`.
+    pub max_connections: u32,
+    /// Requests per second shared by all the tenant's connections (token
+    /// bucket, one second of burst): excess requests are paced, and refused
+    /// with `rate_limited` beyond `max_rate_wait`; 0 = unlimited.
+    pub max_requests_per_second: u32,
+}
+
+impl TenantConfig {
+    /// A tenant with the default limits.
+    pub fn new(name: impl Into<String>, token: impl Into<Token>, databases: Vec<String>) -> Self {
+        TenantConfig {
+            name: name.into(),
+            token: token.into(),
+            databases,
+            max_in_flight: DEFAULT_MAX_IN_FLIGHT,
+            max_bytes_per_second: 0,
+            max_connections: 0,
+            max_requests_per_second: 0,
+        }
+    }
 }
 
 impl std::fmt::Debug for TenantConfig {
@@ -108,6 +142,8 @@ impl std::fmt::Debug for TenantConfig {
             .field("databases", &self.databases)
             .field("max_in_flight", &self.max_in_flight)
             .field("max_bytes_per_second", &self.max_bytes_per_second)
+            .field("max_connections", &self.max_connections)
+            .field("max_requests_per_second", &self.max_requests_per_second)
             .finish()
     }
 }
@@ -118,6 +154,49 @@ pub const DEFAULT_MAX_IN_FLIGHT: u32 = 64;
 pub const DEFAULT_MAX_CONNECTIONS: usize = 2000;
 /// Default idle timeout.
 pub const DEFAULT_IDLE_TIMEOUT_MS: u32 = 30_000;
+/// Default [`ServerConfig::handshake_timeout`].
+pub const DEFAULT_HANDSHAKE_TIMEOUT_MS: u32 = 5_000;
+/// Default [`ServerConfig::handshake_timeout_under_load`].
+pub const DEFAULT_HANDSHAKE_TIMEOUT_UNDER_LOAD_MS: u32 = 1_000;
+/// Default [`ServerConfig::write_timeout`].
+pub const DEFAULT_WRITE_TIMEOUT_MS: u32 = 30_000;
+/// Default [`ServerConfig::max_pending_handshakes`].
+pub const DEFAULT_MAX_PENDING_HANDSHAKES: usize = 256;
+/// Default [`ServerConfig::retry_above_pending`].
+pub const DEFAULT_RETRY_ABOVE_PENDING: usize = 64;
+/// Default [`ServerConfig::max_connections_per_address`].
+pub const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: usize = 64;
+/// Default [`ServerConfig::max_failed_hellos_per_minute`].
+pub const DEFAULT_MAX_FAILED_HELLOS_PER_MINUTE: u32 = 30;
+
+/// How record bytes are read from database files (docs/SECURITY.md,
+/// "Storage faults").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StorageMode {
+    /// `pread` into a buffer per request: a truncated file or an I/O error
+    /// is a per-request `storage` error (the default).
+    Pread,
+    /// Serve zero-copy from a memory map: fastest, but a file truncated in
+    /// place or a failing device raises SIGBUS and kills the process.
+    Mmap,
+    /// `pread` on network and FUSE filesystems (detected with `statfs`),
+    /// the memory map on local ones.
+    Auto,
+}
+
+impl std::str::FromStr for StorageMode {
+    type Err = ConfigError;
+    fn from_str(s: &str) -> Result<Self, ConfigError> {
+        match s {
+            "pread" => Ok(StorageMode::Pread),
+            "mmap" => Ok(StorageMode::Mmap),
+            "auto" => Ok(StorageMode::Auto),
+            other => Err(ConfigError::Invalid(format!(
+                "storage {other:?}: expected \"pread\", \"mmap\" or \"auto\""
+            ))),
+        }
+    }
+}
 
 /// Checked configuration of a server.
 #[derive(Debug, Clone)]
@@ -128,7 +207,10 @@ pub struct ServerConfig {
     pub metrics: Option<SocketAddr>,
     /// Certificate source.
     pub tls: TlsSource,
-    /// Connections beyond this are closed with `CONNECTION_CLOSED_BUSY`.
+    /// Established sessions at once: a `Hello` beyond it is refused with
+    /// `server_busy` (and the connection closed with that code).
+    /// Unauthenticated connections count against `max_pending_handshakes`
+    /// instead.
     pub max_connections: usize,
     /// QUIC idle timeout (also announced in `Limits.idle_timeout_ms`).
     pub idle_timeout_ms: u32,
@@ -174,6 +256,42 @@ pub struct ServerConfig {
     /// sample, and at 333 ms the pacer spreads a 64 KiB window over 266 ms.
     /// It also sets the handshake's first retransmission timeout (3x this).
     pub initial_rtt_ms: u32,
+    /// Total time a connection may stay unauthenticated: from its first
+    /// packet through the QUIC handshake, the control stream, the `Hello`
+    /// and the whole `Welcome` (or error reply) written. Past it the
+    /// connection is closed with `timeout` and counted as
+    /// `planet_handshakes_total{outcome="timeout"}`.
+    pub handshake_timeout: Duration,
+    /// The handshake deadline of connections accepted while more than
+    /// `retry_above_pending` are pending (under load): a client that is not
+    /// flooding needs a few round trips, while every slot a flooder holds
+    /// costs it a handshake per deadline. Never longer than
+    /// `handshake_timeout`.
+    pub handshake_timeout_under_load: Duration,
+    /// Longest one write on behalf of a peer may block (a response head or
+    /// body, an error reply): a client that stops reading, or advertises a
+    /// zero receive window, loses the stream (`timeout`), not a slot forever.
+    pub write_timeout: Duration,
+    /// Unauthenticated connections allowed at once, a budget separate from
+    /// `max_connections`: beyond it new connections are refused before any
+    /// cryptography (`planet_connections_total{outcome="refused"}`).
+    pub max_pending_handshakes: usize,
+    /// With more pending handshakes than this, clients must prove their
+    /// address first (QUIC Retry). 0 = always.
+    pub retry_above_pending: usize,
+    /// Connections (pending and established) one client IP may hold.
+    pub max_connections_per_address: usize,
+    /// Failed `Hello`s one client IP may send per minute (burst of the same
+    /// size); beyond it every `Hello` from that IP, right or wrong, is
+    /// refused with `rate_limited` until the budget refills. 0 = unlimited.
+    pub max_failed_hellos_per_minute: u32,
+    /// How record bytes are read (see [`StorageMode`]).
+    pub storage: StorageMode,
+    /// Development mode: empty, short, low-entropy or placeholder tokens
+    /// are accepted. Set by [`ServerConfig::single_database`], by a file
+    /// without `cert`/`key` (a generated certificate), and by the binary's
+    /// `--dev` and `--dev-cert`; never otherwise.
+    pub dev: bool,
 }
 
 /// Default [`ServerConfig::max_udp_payload`].
@@ -198,6 +316,14 @@ struct FileConfig {
     initial_window: Option<u64>,
     zero_rtt: Option<bool>,
     initial_rtt_ms: Option<u32>,
+    handshake_timeout_ms: Option<u32>,
+    handshake_timeout_under_load_ms: Option<u32>,
+    write_timeout_ms: Option<u32>,
+    max_pending_handshakes: Option<usize>,
+    retry_above_pending: Option<usize>,
+    max_connections_per_address: Option<usize>,
+    max_failed_hellos_per_minute: Option<u32>,
+    storage: Option<String>,
     #[serde(default)]
     database: Vec<FileDatabase>,
     #[serde(default)]
@@ -220,6 +346,8 @@ struct FileTenant {
     databases: Vec<String>,
     max_in_flight: Option<u32>,
     max_bytes_per_second: Option<u64>,
+    max_connections: Option<u32>,
+    max_requests_per_second: Option<u32>,
 }
 
 fn parse_addr(what: &str, s: &str) -> Result<SocketAddr, ConfigError> {
@@ -238,7 +366,8 @@ fn resolve(base: &Path, p: &Path) -> PathBuf {
 impl ServerConfig {
     /// A single-database configuration (no config file): database name =
     /// file stem, one tenant `public` with `token` (empty = any client that
-    /// sends an empty token).
+    /// sends an empty token; weak tokens are accepted only with a
+    /// development certificate, see [`ServerConfig::validate`]).
     pub fn single_database(
         path: impl Into<PathBuf>,
         listen: SocketAddr,
@@ -266,13 +395,12 @@ impl ServerConfig {
                 name: name.clone(),
                 path,
             }],
-            tenants: vec![TenantConfig {
-                name: "public".into(),
-                token: token.into(),
-                databases: vec![name],
-                max_in_flight: DEFAULT_MAX_IN_FLIGHT,
-                max_bytes_per_second: 0,
-            }],
+            tenants: vec![TenantConfig::new(
+                "public",
+                Token::new(&token.into()),
+                vec![name],
+            )],
+            dev: true,
             ..ServerConfig::base(listen)
         };
         cfg.validate()?;
@@ -295,6 +423,17 @@ impl ServerConfig {
             initial_window: DEFAULT_INITIAL_WINDOW,
             zero_rtt: true,
             initial_rtt_ms: DEFAULT_INITIAL_RTT_MS,
+            handshake_timeout: Duration::from_millis(u64::from(DEFAULT_HANDSHAKE_TIMEOUT_MS)),
+            handshake_timeout_under_load: Duration::from_millis(u64::from(
+                DEFAULT_HANDSHAKE_TIMEOUT_UNDER_LOAD_MS,
+            )),
+            write_timeout: Duration::from_millis(u64::from(DEFAULT_WRITE_TIMEOUT_MS)),
+            max_pending_handshakes: DEFAULT_MAX_PENDING_HANDSHAKES,
+            retry_above_pending: DEFAULT_RETRY_ABOVE_PENDING,
+            max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
+            max_failed_hellos_per_minute: DEFAULT_MAX_FAILED_HELLOS_PER_MINUTE,
+            storage: StorageMode::Pread,
+            dev: false,
         }
     }
 
@@ -340,6 +479,7 @@ impl ServerConfig {
                 ))
             }
         };
+        cfg.dev = matches!(cfg.tls, TlsSource::DevCert);
         if let Some(m) = file.max_connections {
             cfg.max_connections = m;
         }
@@ -357,6 +497,30 @@ impl ServerConfig {
         }
         if let Some(r) = file.initial_rtt_ms {
             cfg.initial_rtt_ms = r;
+        }
+        if let Some(t) = file.handshake_timeout_ms {
+            cfg.handshake_timeout = Duration::from_millis(u64::from(t));
+        }
+        if let Some(t) = file.handshake_timeout_under_load_ms {
+            cfg.handshake_timeout_under_load = Duration::from_millis(u64::from(t));
+        }
+        if let Some(t) = file.write_timeout_ms {
+            cfg.write_timeout = Duration::from_millis(u64::from(t));
+        }
+        if let Some(m) = file.max_pending_handshakes {
+            cfg.max_pending_handshakes = m;
+        }
+        if let Some(m) = file.retry_above_pending {
+            cfg.retry_above_pending = m;
+        }
+        if let Some(m) = file.max_connections_per_address {
+            cfg.max_connections_per_address = m;
+        }
+        if let Some(m) = file.max_failed_hellos_per_minute {
+            cfg.max_failed_hellos_per_minute = m;
+        }
+        if let Some(s) = &file.storage {
+            cfg.storage = s.parse()?;
         }
         cfg.databases = file
             .database
@@ -387,12 +551,20 @@ impl ServerConfig {
                     )))
                 }
             };
+            if token.len() > planet_protocol::MAX_NAME_LEN {
+                return Err(ConfigError::Invalid(format!(
+                    "tenant {:?}: token longer than 256 bytes",
+                    t.name
+                )));
+            }
             cfg.tenants.push(TenantConfig {
                 name: t.name,
-                token,
+                token: Token::new(&token),
                 databases: t.databases,
                 max_in_flight: t.max_in_flight.unwrap_or(DEFAULT_MAX_IN_FLIGHT),
                 max_bytes_per_second: t.max_bytes_per_second.unwrap_or(0),
+                max_connections: t.max_connections.unwrap_or(0),
+                max_requests_per_second: t.max_requests_per_second.unwrap_or(0),
             });
         }
         cfg.validate()?;
@@ -427,6 +599,20 @@ impl ServerConfig {
                 self.initial_rtt_ms
             ));
         }
+        if self.handshake_timeout.is_zero() || self.handshake_timeout > Duration::from_secs(120) {
+            return bad("handshake_timeout_ms must be in 1..=120000".into());
+        }
+        if self.handshake_timeout_under_load.is_zero() {
+            return bad("handshake_timeout_under_load_ms must be at least 1".into());
+        }
+        if self.write_timeout.is_zero() {
+            return bad("write_timeout_ms must be at least 1".into());
+        }
+        if self.max_pending_handshakes == 0 || self.max_connections_per_address == 0 {
+            return bad(
+                "max_pending_handshakes and max_connections_per_address must be at least 1".into(),
+            );
+        }
         if !(2400..=16 * 1024 * 1024).contains(&self.initial_window) {
             return bad(format!(
                 "initial_window {} is outside 2400..=16777216 bytes",
@@ -454,8 +640,11 @@ impl ServerConfig {
             if t.name.is_empty() || t.name.len() > planet_protocol::MAX_NAME_LEN {
                 return bad(format!("tenant name {:?} is empty or too long", t.name));
             }
-            if t.token.len() > planet_protocol::MAX_NAME_LEN {
-                return bad(format!("tenant {:?}: token longer than 256 bytes", t.name));
+            if let (Some(why), false) = (t.token.weakness(), self.is_dev()) {
+                return bad(format!(
+                    "tenant {:?}: {why} (weak tokens are accepted only in development mode, --dev)",
+                    t.name
+                ));
             }
             if !tenants.insert(t.name.as_str()) {
                 return bad(format!("duplicate tenant name {:?}", t.name));
@@ -480,6 +669,12 @@ impl ServerConfig {
             }
         }
         Ok(())
+    }
+
+    /// Development mode (see [`ServerConfig::dev`]): only then are empty,
+    /// short, low-entropy or placeholder tokens accepted.
+    pub fn is_dev(&self) -> bool {
+        self.dev
     }
 
     /// The largest `max_in_flight` of any tenant (sizes the QUIC stream

@@ -19,15 +19,15 @@ use planet_protocol::{
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
 
-use crate::db::{MappedDb, RecordSlice};
-use crate::metrics::RequestOutcome;
-use crate::{Shared, TenantRt};
+use crate::db::MappedDb;
+use crate::metrics::{HandshakeEnd, RequestOutcome};
+use crate::{PendingGuard, Shared, TenantRt};
 
-/// How long a client has to open the control stream and send `Hello`.
-const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long a client has to send (and finish) a request on a request stream.
 const REQUEST_READ_TIMEOUT: Duration = Duration::from_secs(10);
-/// How long a fatal error / goodbye frame gets to reach the client.
+/// How long a fatal error / goodbye frame or an error reply on a request
+/// stream gets to be written and reach the client: a peer that does not
+/// read (or advertises a zero window) cannot hold the connection with it.
 const FLUSH_TIMEOUT: Duration = Duration::from_millis(500);
 /// Streams allowed beyond `max_in_flight` (the control stream, plus slack
 /// so that an over-eager client gets `too_many_in_flight` heads rather than
@@ -41,8 +41,48 @@ fn code(c: u32) -> VarInt {
     VarInt::from_u32(c)
 }
 
+/// Takes one of `max` places of `counter` (0 = unlimited).
+fn take_place(counter: &std::sync::atomic::AtomicUsize, max: usize) -> bool {
+    counter
+        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+            (max == 0 || n < max).then_some(n + 1)
+        })
+        .is_ok()
+}
+
+/// One established session: a place of the server's `max_connections` and
+/// of its tenant's `TenantConfig::max_connections`.
+struct SessionSlot(Arc<TenantRt>, Arc<Shared>);
+
+/// Why a session place was refused.
+enum NoPlace {
+    Server,
+    Tenant,
+}
+
+impl SessionSlot {
+    fn try_new(tenant: &Arc<TenantRt>, shared: &Arc<Shared>) -> Result<SessionSlot, NoPlace> {
+        if !take_place(&shared.sessions, shared.cfg.max_connections) {
+            return Err(NoPlace::Server);
+        }
+        if !take_place(&tenant.sessions, tenant.cfg.max_connections as usize) {
+            shared.sessions.fetch_sub(1, Ordering::AcqRel);
+            return Err(NoPlace::Tenant);
+        }
+        Ok(SessionSlot(Arc::clone(tenant), Arc::clone(shared)))
+    }
+}
+
+impl Drop for SessionSlot {
+    fn drop(&mut self) {
+        self.0.sessions.fetch_sub(1, Ordering::AcqRel);
+        self.1.sessions.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
 /// What request futures need once the session is established.
 struct Established {
+    _slot: SessionSlot,
     tenant: Arc<TenantRt>,
     db: Arc<MappedDb>,
     session: ServerSession,
@@ -86,29 +126,40 @@ struct ConnCtx {
 /// The [`Authorizer`] for one connection: checks the hello against the
 /// configuration and remembers the tenant and database version it chose.
 struct ConnAuth<'a> {
-    shared: &'a Shared,
-    chosen: RefCell<Option<(Arc<TenantRt>, Arc<MappedDb>)>>,
+    shared: &'a Arc<Shared>,
+    peer: std::net::IpAddr,
+    chosen: RefCell<Option<(SessionSlot, Arc<MappedDb>)>>,
 }
 
 impl Authorizer for ConnAuth<'_> {
     fn authorize(&self, hello: &Hello) -> Result<Welcome, ErrorMsg> {
+        // Failed hellos are limited per address; once the budget is spent,
+        // every hello from the address is refused without looking at the
+        // token, so guessing gains nothing from a right answer.
+        if !self.shared.failed_hellos.allows(self.peer) {
+            return Err(ErrorMsg::new(
+                ErrorCode::RateLimited,
+                "too many failed hellos from this address",
+            ));
+        }
         let tenant = self.shared.tenants.get(&hello.tenant);
         // Always run the constant-time compare, even for an unknown tenant,
         // so that timing does not reveal which tenant names exist.
         let token_ok = match tenant {
             Some(t) => t.token_matches(&hello.token),
             None => {
-                let _ = crate::ct_eq_token(&self.shared.dummy_token_hash, &hello.token);
+                let _ = self.shared.dummy_token.matches(&hello.token);
                 false
             }
         };
         let tenant = match tenant {
             Some(t) if token_ok => t,
             _ => {
+                self.shared.failed_hellos.spend(self.peer);
                 return Err(ErrorMsg::new(
                     ErrorCode::Unauthorized,
                     "unknown tenant or bad token",
-                ))
+                ));
             }
         };
         let Some(slot) = self.shared.dbs.get(&hello.database) else {
@@ -126,6 +177,33 @@ impl Authorizer for ConnAuth<'_> {
                 ),
             ));
         }
+        let session = match SessionSlot::try_new(tenant, self.shared) {
+            Ok(s) => s,
+            Err(NoPlace::Server) => {
+                self.shared
+                    .metrics
+                    .connections_total
+                    .with_label_values(&["rejected"])
+                    .inc();
+                tracing::warn!(
+                    max = self.shared.cfg.max_connections,
+                    "connection limit reached, refusing"
+                );
+                return Err(ErrorMsg::new(
+                    ErrorCode::ServerBusy,
+                    "server connection limit reached",
+                ));
+            }
+            Err(NoPlace::Tenant) => {
+                return Err(ErrorMsg::new(
+                    ErrorCode::ServerBusy,
+                    format!(
+                        "tenant connection limit ({}) reached",
+                        tenant.cfg.max_connections
+                    ),
+                ))
+            }
+        };
         let db = slot.current();
         let welcome = Welcome {
             version: planet_protocol::PROTOCOL_VERSION,
@@ -139,18 +217,8 @@ impl Authorizer for ConnAuth<'_> {
                 idle_timeout_ms: self.shared.cfg.idle_timeout_ms,
             },
         };
-        *self.chosen.borrow_mut() = Some((Arc::clone(tenant), db));
+        *self.chosen.borrow_mut() = Some((session, db));
         Ok(welcome)
-    }
-}
-
-fn handshake_outcome(code: ErrorCode) -> &'static str {
-    match code {
-        ErrorCode::Unauthorized => "unauthorized",
-        ErrorCode::Forbidden => "forbidden",
-        ErrorCode::UnknownDatabase => "unknown_database",
-        ErrorCode::UnsupportedVersion => "unsupported_version",
-        _ => "malformed",
     }
 }
 
@@ -171,17 +239,22 @@ enum End {
     Close(u32, &'static str),
 }
 
-/// Serves one established QUIC connection until it ends.
+/// Serves one QUIC connection until it ends. `deadline` ends the
+/// unauthenticated phase (control stream, `Hello`, the whole `Welcome`
+/// written); `pending` is released once the session is established.
 pub(crate) async fn serve_connection(
     conn: quinn::Connection,
     shared: Arc<Shared>,
     mut shutdown: watch::Receiver<bool>,
+    deadline: tokio::time::Instant,
+    mut pending: PendingGuard,
 ) {
     let peer = conn.remote_address();
     let first = tokio::select! {
         r = conn.accept_bi() => Some(r),
-        _ = tokio::time::sleep(HELLO_TIMEOUT) => None,
+        _ = tokio::time::sleep_until(deadline) => None,
         _ = shutdown.wait_for(|s| *s) => {
+            shared.metrics.handshake(HandshakeEnd::Lost);
             conn.close(code(quic::CONNECTION_CLOSED_SHUTDOWN), b"shutting down");
             return;
         }
@@ -189,15 +262,12 @@ pub(crate) async fn serve_connection(
     let (mut ctrl_send, mut ctrl_recv) = match first {
         Some(Ok(streams)) => streams,
         Some(Err(e)) => {
+            shared.metrics.handshake(HandshakeEnd::Lost);
             tracing::debug!(%peer, error = %e, "connection ended before the control stream");
             return;
         }
         None => {
-            shared
-                .metrics
-                .handshakes_total
-                .with_label_values(&["malformed"])
-                .inc();
+            shared.metrics.handshake(HandshakeEnd::Timeout);
             conn.close(
                 code(ErrorCode::HelloRequired.to_quic()),
                 b"no control stream",
@@ -223,7 +293,7 @@ pub(crate) async fn serve_connection(
     let mut ctrl_open = true;
     let mut accepting = true;
     let mut draining: Option<(tokio::time::Instant, u32, &'static str)> = None;
-    let hello_deadline = tokio::time::Instant::now() + HELLO_TIMEOUT;
+    let hello_deadline = deadline;
     let mut handshake_counted = false;
 
     let end = loop {
@@ -246,27 +316,45 @@ pub(crate) async fn serve_connection(
             Step::Ctrl(Ok(Some(chunk))) => {
                 let auth = ConnAuth {
                     shared: &shared,
+                    peer: peer.ip(),
                     chosen: RefCell::new(None),
                 };
                 let events = session.receive(&chunk.bytes, &auth);
                 let mut fatal = None;
+                let mut timed_out = false;
                 for ev in events {
                     match ev {
                         ServerEvent::Welcomed { welcome, reply } => {
-                            let Some((tenant, db)) = auth.chosen.borrow_mut().take() else {
+                            let Some((slot, db)) = auth.chosen.borrow_mut().take() else {
                                 fatal = Some(ErrorMsg::new(ErrorCode::Internal, "no database"));
                                 break;
                             };
-                            if let Err(e) = ctrl_send.write_all(&reply).await {
-                                tracing::debug!(%peer, error = %e, "cannot write welcome");
-                                break;
+                            let tenant = Arc::clone(&slot.0);
+                            // The Welcome must be written whole within the
+                            // handshake deadline: a client with a zero
+                            // receive window cannot keep its slot with it.
+                            match tokio::time::timeout_at(
+                                hello_deadline,
+                                ctrl_send.write_all(&reply),
+                            )
+                            .await
+                            {
+                                Ok(Ok(())) => {}
+                                Ok(Err(e)) => {
+                                    tracing::debug!(%peer, error = %e, "cannot write welcome");
+                                    break;
+                                }
+                                Err(_) => {
+                                    tracing::debug!(%peer, "welcome not written within the handshake timeout");
+                                    handshake_counted = true;
+                                    shared.metrics.handshake(HandshakeEnd::Timeout);
+                                    timed_out = true;
+                                    break;
+                                }
                             }
                             handshake_counted = true;
-                            shared
-                                .metrics
-                                .handshakes_total
-                                .with_label_values(&["ok"])
-                                .inc();
+                            pending.release();
+                            shared.metrics.handshake(HandshakeEnd::Ok);
                             conn.set_max_concurrent_bi_streams(VarInt::from_u32(
                                 welcome.limits.max_in_flight + 1 + STREAM_MARGIN,
                             ));
@@ -275,6 +363,7 @@ pub(crate) async fn serve_connection(
                                 "session established"
                             );
                             let _ = ctx.established.set(Established {
+                                _slot: slot,
                                 in_flight: Mutex::new(InFlight::new(tenant.cfg.max_in_flight)),
                                 ok: OkMetrics::new(&shared.metrics, &tenant.cfg.name, &db.name),
                                 tenant,
@@ -285,14 +374,12 @@ pub(crate) async fn serve_connection(
                         ServerEvent::Fatal { error, reply } => {
                             if !handshake_counted {
                                 handshake_counted = true;
-                                shared
-                                    .metrics
-                                    .handshakes_total
-                                    .with_label_values(&[handshake_outcome(error.code)])
-                                    .inc();
+                                shared.metrics.handshake(HandshakeEnd::Refused(error.code));
                             }
                             tracing::info!(%peer, error = %error, "control stream error, closing");
-                            let _ = ctrl_send.write_all(&reply).await;
+                            let _ =
+                                tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.write_all(&reply))
+                                    .await;
                             fatal = Some(error);
                             break;
                         }
@@ -318,6 +405,11 @@ pub(crate) async fn serve_connection(
                         }
                     }
                 }
+                if timed_out {
+                    let _ = abort_tx.send(true);
+                    conn.close(code(ErrorCode::Timeout.to_quic()), b"handshake timeout");
+                    break End::Lost;
+                }
                 if let Some(error) = fatal {
                     let _ = ctrl_send.finish();
                     let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
@@ -330,13 +422,10 @@ pub(crate) async fn serve_connection(
                 ctrl_open = false;
                 if let Some(ServerEvent::Fatal { error, reply }) = session.finish() {
                     if !handshake_counted {
-                        shared
-                            .metrics
-                            .handshakes_total
-                            .with_label_values(&[handshake_outcome(error.code)])
-                            .inc();
+                        handshake_counted = true;
+                        shared.metrics.handshake(HandshakeEnd::Refused(error.code));
                     }
-                    let _ = ctrl_send.write_all(&reply).await;
+                    let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.write_all(&reply)).await;
                     let _ = ctrl_send.finish();
                     let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
                     let _ = abort_tx.send(true);
@@ -395,11 +484,8 @@ pub(crate) async fn serve_connection(
             }
             Step::HelloTimeout => {
                 if !handshake_counted {
-                    shared
-                        .metrics
-                        .handshakes_total
-                        .with_label_values(&["malformed"])
-                        .inc();
+                    handshake_counted = true;
+                    shared.metrics.handshake(HandshakeEnd::Timeout);
                 }
                 let _ = abort_tx.send(true);
                 conn.close(code(ErrorCode::HelloRequired.to_quic()), b"hello timeout");
@@ -407,6 +493,9 @@ pub(crate) async fn serve_connection(
             }
         }
     };
+    if !handshake_counted {
+        shared.metrics.handshake(HandshakeEnd::Lost);
+    }
     if let End::Close(c, reason) = end {
         let _ = ctrl_send.finish();
         let _ = tokio::time::timeout(FLUSH_TIMEOUT, ctrl_send.stopped()).await;
@@ -457,24 +546,55 @@ impl Drop for InFlightGuard<'_> {
     }
 }
 
-/// Writes an error head and finishes the stream.
+/// Writes an error head and finishes the stream. Codes that exist only as
+/// QUIC application codes (`timeout`, `storage`: added within protocol
+/// version 1, docs/PROTOCOL.md §6) reset the stream with the code instead.
 async fn reply_error(send: &mut SendStream, id: u64, error: ErrorMsg) {
+    if matches!(error.code, ErrorCode::Timeout | ErrorCode::Storage) {
+        let _ = send.reset(code(error.code.to_quic()));
+        return;
+    }
     match ResponseHead::error(id, error).encode_frame() {
-        Ok(frame) => {
-            if send.write_all(&frame).await.is_ok() {
+        Ok(frame) => match tokio::time::timeout(FLUSH_TIMEOUT, send.write_all(&frame)).await {
+            Ok(Ok(())) => {
                 let _ = send.finish();
                 let _ = tokio::time::timeout(FLUSH_TIMEOUT, send.stopped()).await;
             }
-        }
+            Ok(Err(_)) => {}
+            Err(_) => {
+                let _ = send.reset(code(ErrorCode::Timeout.to_quic()));
+            }
+        },
         Err(_) => {
             let _ = send.reset(code(ErrorCode::Internal.to_quic()));
         }
     }
 }
 
-/// Checks a request against the mapped file, before touching record bytes
-/// beyond the 8-byte record prefix.
-fn validate(est: &Established, req: &LodRequest) -> Result<(), ErrorMsg> {
+/// A read of the database file failed: a per-request `storage` error, a
+/// metric, and a log line at most once a minute per record.
+fn storage_error(ctx: &ConnCtx, db: &MappedDb, offset: u64, e: &std::io::Error) -> ErrorMsg {
+    let shared = &ctx.shared;
+    shared
+        .metrics
+        .storage_errors_total
+        .with_label_values(&[&db.name])
+        .inc();
+    if shared.record_alerts.note(&db.name, offset).log {
+        tracing::error!(
+            database = %db.name, path = %db.path.display(), offset, error = %e,
+            "cannot read the database file (truncated in place or failing storage)"
+        );
+    }
+    ErrorMsg::new(
+        ErrorCode::Storage,
+        format!("the server cannot read the record at {offset}"),
+    )
+}
+
+/// Checks a request against the database, reading only the 8-byte record
+/// prefix.
+fn validate(ctx: &ConnCtx, est: &Established, req: &LodRequest) -> Result<(), ErrorMsg> {
     est.session.check_request(req)?;
     let db = &est.db;
     let end = req.offset.checked_add(u64::from(req.size));
@@ -489,13 +609,16 @@ fn validate(est: &Established, req: &LodRequest) -> Result<(), ErrorMsg> {
             ),
         ));
     }
-    let start = req.offset as usize;
+    if req.offset + 8 > db.records_end() {
+        return Err(ErrorMsg::new(
+            ErrorCode::NotARecord,
+            "no record prefix at offset",
+        ));
+    }
     let prefix = db
-        .bytes()
-        .get(start..start + 8)
-        .filter(|_| req.offset + 8 <= db.records_end())
-        .ok_or_else(|| ErrorMsg::new(ErrorCode::NotARecord, "no record prefix at offset"))?;
-    let len = peek_record_len(prefix).map_err(|e| {
+        .read(req.offset, 8)
+        .map_err(|e| storage_error(ctx, db, req.offset, &e))?;
+    let len = peek_record_len(&prefix).map_err(|e| {
         ErrorMsg::new(
             ErrorCode::NotARecord,
             format!("offset {} is not a record start: {e}", req.offset),
@@ -589,7 +712,7 @@ async fn serve_request(
         reply_error(&mut send, req.id, e).await;
         return;
     }
-    if let Err(e) = validate(est, &req) {
+    if let Err(e) = validate(&ctx, est, &req) {
         let e = fail(e);
         reply_error(&mut send, req.id, e).await;
         return;
@@ -615,9 +738,15 @@ async fn serve_request(
     let started = Instant::now();
     let size = u64::from(req.size);
 
-    // Per-tenant bandwidth: pace modest excess, refuse long waits.
-    if let Some(bucket) = &est.tenant.bucket {
-        match bucket.reserve(size, ctx.shared.cfg.max_rate_wait) {
+    // Per-tenant requests, then bandwidth: pace modest excess, refuse long
+    // waits.
+    let buckets = [
+        (&est.tenant.requests, 1, "request"),
+        (&est.tenant.bucket, size, "bandwidth"),
+    ];
+    for (bucket, amount, what) in buckets {
+        let Some(bucket) = bucket else { continue };
+        match bucket.reserve(amount, ctx.shared.cfg.max_rate_wait) {
             Ok(wait) if !wait.is_zero() => {
                 let aborted = tokio::select! {
                     _ = tokio::time::sleep(wait) => false,
@@ -625,7 +754,7 @@ async fn serve_request(
                     _ = send.stopped() => true,
                 };
                 if aborted {
-                    bucket.refund(size);
+                    bucket.refund(amount);
                     let _ = send.reset(code(quic::STREAM_CANCELLED));
                     metrics.request(tenant, dbname, RequestOutcome::Cancelled);
                     return;
@@ -636,7 +765,7 @@ async fn serve_request(
                 let e = fail(ErrorMsg::new(
                     ErrorCode::RateLimited,
                     format!(
-                        "tenant bandwidth limit: would wait {:.1} s (limit {:.1} s)",
+                        "tenant {what} limit: would wait {:.1} s (limit {:.1} s)",
                         wait.as_secs_f64(),
                         ctx.shared.cfg.max_rate_wait.as_secs_f64()
                     ),
@@ -657,18 +786,28 @@ async fn serve_request(
         return;
     }
 
-    let start = req.offset as usize;
-    let end = start + req.size as usize;
-    let Some(slice) = RecordSlice::new(Arc::clone(&est.db), start, end) else {
-        let e = fail(ErrorMsg::new(ErrorCode::Internal, "record range"));
-        reply_error(&mut send, req.id, e).await;
-        return;
+    let body = match est.db.read(req.offset, req.size as usize) {
+        Ok(b) => b,
+        Err(e) => {
+            let e = fail(storage_error(&ctx, &est.db, req.offset, &e));
+            reply_error(&mut send, req.id, e).await;
+            return;
+        }
     };
-    if !record_checksum_ok(slice.as_ref()) {
-        tracing::error!(
-            database = dbname, path = %est.db.path.display(), offset = req.offset, size = req.size,
-            "record failed its checksum: the database file is corrupt"
-        );
+    if !record_checksum_ok(&body) {
+        let alert = ctx.shared.record_alerts.note(dbname, req.offset);
+        if alert.first {
+            metrics
+                .corrupt_records_total
+                .with_label_values(&[dbname])
+                .inc();
+        }
+        if alert.log {
+            tracing::error!(
+                database = dbname, path = %est.db.path.display(), offset = req.offset, size = req.size,
+                "record failed its checksum: the database file is corrupt"
+            );
+        }
         let e = fail(ErrorMsg::new(
             ErrorCode::CorruptRecord,
             format!("record at {} failed its checksum on the server", req.offset),
@@ -684,40 +823,51 @@ async fn serve_request(
             return;
         }
     };
-    let mut chunks = [Bytes::from(head), Bytes::from_owner(slice)];
+    let mut chunks = [Bytes::from(head), body];
+    let write_deadline = tokio::time::sleep(ctx.shared.cfg.write_timeout);
     let written = tokio::select! {
         // The write usually completes in its first poll: try it before
-        // registering with the abort signal.
+        // registering with the abort signal and the timer (a `Sleep`
+        // registers with the timer only when polled).
         biased;
-        r = send.write_all_chunks(&mut chunks) => Some(r),
+        r = send.write_all_chunks(&mut chunks) => Some(Some(r)),
         _ = abort.wait_for(|a| *a) => None,
+        _ = write_deadline => Some(None),
     };
     let outcome = match written {
         None => {
             let _ = send.reset(code(quic::CONNECTION_CLOSED_SHUTDOWN));
             RequestOutcome::Error
         }
-        Some(Err(quinn::WriteError::Stopped(_))) => RequestOutcome::Cancelled,
-        // The client went away mid-response: not a server error.
-        Some(Err(quinn::WriteError::ConnectionLost(_))) => RequestOutcome::Cancelled,
-        Some(Err(e)) => {
-            tracing::warn!(error = %e, "response write failed");
-            let _ = send.reset(code(ErrorCode::Internal.to_quic()));
-            RequestOutcome::Error
+        // The client did not take the response within the write deadline
+        // (it stopped reading, or keeps its window closed).
+        Some(None) => {
+            let _ = send.reset(code(ErrorCode::Timeout.to_quic()));
+            RequestOutcome::Timeout
         }
-        Some(Ok(())) => {
-            // The whole response is in QUIC's send buffer and the stream is
-            // finished: quinn delivers (and retransmits) it after `send` is
-            // dropped. The request is no longer in flight, and the client,
-            // which reads up to the FIN, may reuse its id at once. Buffered
-            // memory stays bounded by the stream limit: a stream counts
-            // against it until the client has acknowledged all of it. We do
-            // not wait for that acknowledgement (until 2026-11-22 every
-            // request did, to count a late STOP_SENDING as `cancelled`: a
-            // timer and a wake-up per request for a metric).
-            let _ = send.finish();
-            RequestOutcome::Ok
-        }
+        Some(Some(written)) => match written {
+            Err(quinn::WriteError::Stopped(_)) => RequestOutcome::Cancelled,
+            // The client went away mid-response: not a server error.
+            Err(quinn::WriteError::ConnectionLost(_)) => RequestOutcome::Cancelled,
+            Err(e) => {
+                tracing::warn!(error = %e, "response write failed");
+                let _ = send.reset(code(ErrorCode::Internal.to_quic()));
+                RequestOutcome::Error
+            }
+            Ok(()) => {
+                // The whole response is in QUIC's send buffer and the stream is
+                // finished: quinn delivers (and retransmits) it after `send` is
+                // dropped. The request is no longer in flight, and the client,
+                // which reads up to the FIN, may reuse its id at once. Buffered
+                // memory stays bounded by the stream limit: a stream counts
+                // against it until the client has acknowledged all of it. We do
+                // not wait for that acknowledgement (until 2026-11-22 every
+                // request did, to count a late STOP_SENDING as `cancelled`: a
+                // timer and a wake-up per request for a metric).
+                let _ = send.finish();
+                RequestOutcome::Ok
+            }
+        },
     };
     drop(guard);
     if outcome == RequestOutcome::Ok {

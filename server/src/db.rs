@@ -1,8 +1,24 @@
-//! Memory-mapped, validated database files and their reload.
+//! Validated database files, how record bytes are read from them, and their
+//! reload.
 //!
-//! Each database is opened, validated (superblock and header, via
-//! `planet-core`) and memory-mapped **once**; all connections share the map
-//! through an `Arc`. A reload re-opens the path: if the file changed (device,
+//! Each database is opened and validated (superblock and header, via
+//! `planet-core`) **once**; all connections share it through an `Arc`.
+//!
+//! **Storage faults** (docs/SECURITY.md, "Storage faults"). Record bytes are
+//! read according to [`StorageMode`]:
+//! - `pread` (default): `read_exact_at` into a buffer per request. A file
+//!   truncated in place, an I/O error or a stale network-filesystem handle
+//!   is an `Err` for that request (`storage` on the wire,
+//!   `planet_storage_errors_total`), never a signal.
+//! - `mmap`: zero-copy slices of a read-only memory map. Before each
+//!   request the file's current size is checked (`fstat`), which catches a
+//!   truncation that happened before the request, but not one racing with
+//!   the send (quinn reads the slice when it builds packets): such a race,
+//!   or a device error under the map, raises SIGBUS and kills the process.
+//! - `auto`: `pread` on network and FUSE filesystems (NFS, CIFS/SMB, Ceph,
+//!   FUSE, 9P, AFS, Lustre, GPFS; `fstatfs`), `mmap` elsewhere.
+//!
+//!  A reload re-opens the path: if the file changed (device,
 //! inode, mtime or length), the new file is validated and mapped for *new*
 //! sessions, while open sessions keep their `Arc` to the old map (the old
 //! inode stays alive until they close).
@@ -13,12 +29,15 @@
 //! makes reads of the missing pages raise SIGBUS and kill the process.
 
 use std::fs::File;
-use std::os::unix::fs::MetadataExt;
+use std::os::unix::fs::{FileExt, MetadataExt};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
+use bytes::Bytes;
 use memmap2::Mmap;
 use planet_core::format::{Header, Superblock, SUPERBLOCK_LEN};
+
+use crate::config::StorageMode;
 
 /// Why a database file cannot be served.
 #[derive(Debug, thiserror::Error)]
@@ -65,13 +84,42 @@ impl FileIdentity {
     }
 }
 
-/// One validated, mapped version of a database file.
+/// `f_type` values (`statfs(2)`) of network and FUSE filesystems, where a
+/// file may change or fail under a map without the local kernel knowing.
+const REMOTE_FS_MAGIC: [(u32, &str); 10] = [
+    (0x6969, "nfs"),
+    (0xFF53_4D42, "cifs"),
+    (0xFE53_4D42, "smb2"),
+    (0x517B, "smb"),
+    (0x00C3_6400, "ceph"),
+    (0x6573_5546, "fuse"),
+    (0x0102_1997, "9p"),
+    (0x5346_414F, "afs"),
+    (0x0BD0_0BD0, "lustre"),
+    (0x4750_4653, "gpfs"),
+];
+
+/// The filesystem of `file`, if it is a network or FUSE one.
+pub fn remote_filesystem(file: &File) -> Option<&'static str> {
+    let st = rustix::fs::fstatfs(file).ok()?;
+    // `f_type` is signed on some targets: compare the low 32 bits.
+    let magic = st.f_type as u32;
+    REMOTE_FS_MAGIC
+        .iter()
+        .find(|(m, _)| *m == magic)
+        .map(|(_, n)| *n)
+}
+
+/// One validated version of a database file, read by `pread` or from a map.
 pub struct MappedDb {
     /// Configured name.
     pub name: String,
     /// Path it was opened from.
     pub path: PathBuf,
-    map: Mmap,
+    file: File,
+    map: Option<Mmap>,
+    len: u64,
+    header: Vec<u8>,
     /// The checked superblock.
     pub superblock: Superblock,
     identity: FileIdentity,
@@ -82,15 +130,21 @@ impl std::fmt::Debug for MappedDb {
         f.debug_struct("MappedDb")
             .field("name", &self.name)
             .field("path", &self.path)
-            .field("len", &self.map.len())
+            .field("len", &self.len)
+            .field("mapped", &self.map.is_some())
             .field("superblock", &self.superblock)
             .finish()
     }
 }
 
 impl MappedDb {
-    /// Opens, maps and validates `path`.
+    /// Opens and validates `path`, reading records by `pread`.
     pub fn open(name: &str, path: &Path) -> Result<MappedDb, DbError> {
+        Self::open_with(name, path, StorageMode::Pread)
+    }
+
+    /// Opens and validates `path`, reading records as `mode` says.
+    pub fn open_with(name: &str, path: &Path, mode: StorageMode) -> Result<MappedDb, DbError> {
         let io = |source| DbError::Io {
             name: name.to_string(),
             path: path.to_path_buf(),
@@ -112,14 +166,31 @@ impl MappedDb {
                 meta.len()
             )));
         }
-        // SAFETY: the map is read-only and the file is treated as immutable
-        // (deployment rule: replace by rename, never modify in place; see the
-        // module docs). All accesses are bounds-checked slices of the map,
-        // whose length is fixed at map time.
-        let map = unsafe { Mmap::map(&file) }.map_err(io)?;
-        let len = map.len() as u64;
-        let superblock = Superblock::decode(&map[..SUPERBLOCK_LEN])
-            .map_err(|e| invalid(format!("superblock: {e}")))?;
+        let use_map = match mode {
+            StorageMode::Pread => false,
+            StorageMode::Mmap => true,
+            StorageMode::Auto => match remote_filesystem(&file) {
+                Some(fs) => {
+                    tracing::info!(database = name, path = %path.display(), filesystem = fs, "network filesystem: reading records with pread");
+                    false
+                }
+                None => true,
+            },
+        };
+        let len = meta.len();
+        let map = if use_map {
+            // SAFETY: the map is read-only. Its pages stay valid only while
+            // the file is not truncated in place (module docs: `mmap` mode
+            // trusts the deployment to publish by rename); every access is
+            // a bounds-checked slice, preceded by an `fstat` size check.
+            Some(unsafe { Mmap::map(&file) }.map_err(io)?)
+        } else {
+            None
+        };
+        let mut sb = [0u8; SUPERBLOCK_LEN];
+        file.read_exact_at(&mut sb, 0).map_err(io)?;
+        let superblock =
+            Superblock::decode(&sb).map_err(|e| invalid(format!("superblock: {e}")))?;
         if superblock.file_len != len {
             return Err(invalid(format!(
                 "truncated or extended: superblock says {} bytes, file has {len}",
@@ -133,40 +204,73 @@ impl MappedDb {
                 planet_protocol::MAX_HEADER_LEN
             )));
         }
-        let start = superblock.header_offset as usize;
-        let end = start + superblock.header_len as usize;
-        let header_bytes = map
-            .get(start..end)
+        let end = superblock
+            .header_offset
+            .checked_add(u64::from(superblock.header_len))
+            .filter(|&e| e <= len)
             .ok_or_else(|| invalid("header outside the file".into()))?;
-        Header::decode(header_bytes, Some(len)).map_err(|e| invalid(format!("header: {e}")))?;
+        let mut header = vec![0u8; (end - superblock.header_offset) as usize];
+        file.read_exact_at(&mut header, superblock.header_offset)
+            .map_err(io)?;
+        Header::decode(&header, Some(len)).map_err(|e| invalid(format!("header: {e}")))?;
         Ok(MappedDb {
             name: name.to_string(),
             path: path.to_path_buf(),
+            file,
             map,
+            len,
+            header,
             superblock,
             identity: FileIdentity::of(&meta),
         })
     }
 
-    /// The whole file.
-    pub fn bytes(&self) -> &[u8] {
-        &self.map
-    }
-
-    /// File length.
+    /// File length (at open).
     pub fn len(&self) -> u64 {
-        self.map.len() as u64
+        self.len
     }
 
-    /// True for an empty map (never for a valid database).
+    /// True for an empty file (never for a valid database).
     pub fn is_empty(&self) -> bool {
-        self.map.is_empty()
+        self.len == 0
     }
 
-    /// The stored header bytes (sent in `Welcome`).
+    /// Whether records are served from a memory map (`mmap` mode).
+    pub fn is_mapped(&self) -> bool {
+        self.map.is_some()
+    }
+
+    /// The stored header bytes (sent in `Welcome`), read at open.
     pub fn header_bytes(&self) -> &[u8] {
-        let start = self.superblock.header_offset as usize;
-        &self.map[start..start + self.superblock.header_len as usize]
+        &self.header
+    }
+
+    /// Reads `len` bytes at `offset`: a `pread`, or a zero-copy slice of the
+    /// map after checking that the file still covers it. A file shorter
+    /// than the range (truncated in place) or a failing read is an `Err`.
+    pub fn read(self: &Arc<Self>, offset: u64, len: usize) -> std::io::Result<Bytes> {
+        let end = offset
+            .checked_add(len as u64)
+            .filter(|&e| e <= self.len)
+            .ok_or_else(|| std::io::Error::other("range outside the file"))?;
+        if self.map.is_some() {
+            let now = self.file.metadata()?.len();
+            if now < end {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::UnexpectedEof,
+                    format!(
+                        "file truncated under the map: {now} bytes, {} at open",
+                        self.len
+                    ),
+                ));
+            }
+            let slice = RecordSlice::new(Arc::clone(self), offset as usize, end as usize)
+                .ok_or_else(|| std::io::Error::other("range outside the map"))?;
+            return Ok(Bytes::from_owner(slice));
+        }
+        let mut buf = vec![0u8; len];
+        self.file.read_exact_at(&mut buf, offset)?;
+        Ok(Bytes::from(buf))
     }
 
     /// Offset where the records end (the header starts).
@@ -185,7 +289,8 @@ pub struct RecordSlice {
 impl RecordSlice {
     /// A slice; the range must have been checked against the map.
     pub fn new(db: Arc<MappedDb>, start: usize, end: usize) -> Option<RecordSlice> {
-        if start <= end && end <= db.map.len() {
+        let map_len = db.map.as_ref()?.len();
+        if start <= end && end <= map_len {
             Some(RecordSlice { db, start, end })
         } else {
             None
@@ -195,7 +300,12 @@ impl RecordSlice {
 
 impl AsRef<[u8]> for RecordSlice {
     fn as_ref(&self) -> &[u8] {
-        &self.db.map[self.start..self.end]
+        // `new` checked the range against the map, which never changes.
+        self.db
+            .map
+            .as_ref()
+            .and_then(|m| m.get(self.start..self.end))
+            .unwrap_or(&[])
     }
 }
 
@@ -206,6 +316,7 @@ pub struct DbSlot {
     pub name: String,
     /// Configured path.
     pub path: PathBuf,
+    mode: StorageMode,
     current: RwLock<Arc<MappedDb>>,
 }
 
@@ -222,11 +333,12 @@ pub enum ReloadOutcome {
 
 impl DbSlot {
     /// Opens the database for the first time.
-    pub fn open(name: &str, path: &Path) -> Result<DbSlot, DbError> {
-        let db = MappedDb::open(name, path)?;
+    pub fn open(name: &str, path: &Path, mode: StorageMode) -> Result<DbSlot, DbError> {
+        let db = MappedDb::open_with(name, path, mode)?;
         Ok(DbSlot {
             name: name.to_string(),
             path: path.to_path_buf(),
+            mode,
             current: RwLock::new(Arc::new(db)),
         })
     }
@@ -247,7 +359,7 @@ impl DbSlot {
             Ok(_) => {}
             Err(e) => return ReloadOutcome::Failed(format!("{}: {e}", self.path.display())),
         }
-        match MappedDb::open(&self.name, &self.path) {
+        match MappedDb::open_with(&self.name, &self.path, self.mode) {
             Ok(db) => {
                 let db = Arc::new(db);
                 match self.current.write() {

@@ -6,7 +6,9 @@
 //! - [`metrics`]: Prometheus metrics and the `/metrics` `/healthz` `/readyz`
 //!   HTTP server.
 //! - [`tls`]: certificates (PEM or generated), rustls/ring, ALPN, no 0-RTT.
-//! - [`limit`]: per-tenant bandwidth token bucket.
+//! - [`limit`]: token buckets (tenant bandwidth and requests, failed
+//!   hellos per address).
+//! - [`token`]: tenant tokens, kept as SHA-256 hashes.
 //! - `conn` (private): per-connection protocol handling.
 //!
 //! Start a server in-process with [`Server::start`]; the binary
@@ -18,12 +20,13 @@ pub mod db;
 pub mod limit;
 pub mod metrics;
 pub mod tls;
+pub mod token;
 pub mod udp;
 
 use std::collections::HashMap;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use planet_protocol::quic;
@@ -31,9 +34,10 @@ use quinn::VarInt;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
-pub use config::{ConfigError, DatabaseConfig, ServerConfig, TenantConfig, TlsSource};
+pub use config::{ConfigError, DatabaseConfig, ServerConfig, StorageMode, TenantConfig, TlsSource};
 pub use db::{DbError, ReloadOutcome};
 pub use metrics::Metrics;
+pub use token::Token;
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
@@ -65,32 +69,17 @@ pub enum ServerError {
 /// A tenant at run time.
 pub(crate) struct TenantRt {
     pub(crate) cfg: TenantConfig,
-    token_hash: [u8; 32],
+    /// Bandwidth bucket (`max_bytes_per_second`).
     pub(crate) bucket: Option<limit::TokenBucket>,
-}
-
-fn sha256(bytes: &[u8]) -> [u8; 32] {
-    let d = ring::digest::digest(&ring::digest::SHA256, bytes);
-    let mut out = [0u8; 32];
-    out.copy_from_slice(d.as_ref());
-    out
-}
-
-/// Constant-time comparison of a presented token with a stored token hash.
-/// Both sides are hashed first, so neither the content nor the length of the
-/// stored token leaks through timing.
-pub(crate) fn ct_eq_token(stored_hash: &[u8; 32], presented: &str) -> bool {
-    let h = sha256(presented.as_bytes());
-    let mut diff = 0u8;
-    for (a, b) in stored_hash.iter().zip(h.iter()) {
-        diff |= a ^ b;
-    }
-    std::hint::black_box(diff) == 0
+    /// Request bucket (`max_requests_per_second`).
+    pub(crate) requests: Option<limit::TokenBucket>,
+    /// Established sessions (`max_connections`).
+    pub(crate) sessions: AtomicUsize,
 }
 
 impl TenantRt {
     pub(crate) fn token_matches(&self, presented: &str) -> bool {
-        ct_eq_token(&self.token_hash, presented)
+        self.cfg.token.matches(presented)
     }
 }
 
@@ -99,10 +88,20 @@ pub(crate) struct Shared {
     pub(crate) cfg: ServerConfig,
     pub(crate) dbs: HashMap<String, db::DbSlot>,
     pub(crate) tenants: HashMap<String, Arc<TenantRt>>,
-    pub(crate) dummy_token_hash: [u8; 32],
+    pub(crate) dummy_token: Token,
     pub(crate) metrics: Metrics,
     http: Arc<metrics::HttpState>,
     active: AtomicUsize,
+    /// Established sessions (`max_connections`).
+    pub(crate) sessions: AtomicUsize,
+    /// Connections not yet authenticated.
+    pending: AtomicUsize,
+    /// Open connections (pending and established) per client IP.
+    per_address: Mutex<HashMap<IpAddr, usize>>,
+    /// Failed hellos per client IP.
+    pub(crate) failed_hellos: limit::KeyedBuckets,
+    /// Log and alert rate limit per failing record.
+    pub(crate) record_alerts: limit::RecordAlerts,
 }
 
 impl Shared {
@@ -147,6 +146,65 @@ impl Drop for ActiveGuard {
     }
 }
 
+/// One connection of a client IP (`max_connections_per_address`).
+struct AddressGuard(Arc<Shared>, IpAddr);
+
+impl AddressGuard {
+    fn try_new(shared: &Arc<Shared>, ip: IpAddr) -> Option<AddressGuard> {
+        let mut map = match shared.per_address.lock() {
+            Ok(m) => m,
+            Err(p) => p.into_inner(),
+        };
+        let n = map.entry(ip).or_insert(0);
+        if *n >= shared.cfg.max_connections_per_address {
+            return None;
+        }
+        *n += 1;
+        Some(AddressGuard(Arc::clone(shared), ip))
+    }
+}
+
+impl Drop for AddressGuard {
+    fn drop(&mut self) {
+        let mut map = match self.0.per_address.lock() {
+            Ok(m) => m,
+            Err(p) => p.into_inner(),
+        };
+        if let Some(n) = map.get_mut(&self.1) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                map.remove(&self.1);
+            }
+        }
+    }
+}
+
+/// An unauthenticated connection (`max_pending_handshakes`): released when
+/// its session is established or the connection ends.
+pub(crate) struct PendingGuard(Option<Arc<Shared>>);
+
+impl PendingGuard {
+    fn new(shared: &Arc<Shared>) -> PendingGuard {
+        shared.pending.fetch_add(1, Ordering::AcqRel);
+        shared.metrics.handshakes_pending.inc();
+        PendingGuard(Some(Arc::clone(shared)))
+    }
+
+    /// The session is authenticated: no longer pending.
+    pub(crate) fn release(&mut self) {
+        if let Some(shared) = self.0.take() {
+            shared.pending.fetch_sub(1, Ordering::AcqRel);
+            shared.metrics.handshakes_pending.dec();
+        }
+    }
+}
+
+impl Drop for PendingGuard {
+    fn drop(&mut self) {
+        self.release();
+    }
+}
+
 /// Entry point: [`Server::start`].
 pub struct Server;
 
@@ -174,7 +232,7 @@ impl Server {
         let metrics = Metrics::new()?;
         let mut dbs = HashMap::new();
         for d in &config.databases {
-            let slot = db::DbSlot::open(&d.name, &d.path)?;
+            let slot = db::DbSlot::open(&d.name, &d.path, config.storage)?;
             let cur = slot.current();
             tracing::info!(database = %d.name, path = %d.path.display(), size = cur.len(), "database mapped");
             metrics.init_database(&d.name, cur.len());
@@ -186,9 +244,11 @@ impl Server {
             .map(|t| {
                 let rt = TenantRt {
                     cfg: t.clone(),
-                    token_hash: sha256(t.token.as_bytes()),
                     bucket: (t.max_bytes_per_second > 0)
                         .then(|| limit::TokenBucket::new(t.max_bytes_per_second)),
+                    requests: (t.max_requests_per_second > 0)
+                        .then(|| limit::TokenBucket::new(u64::from(t.max_requests_per_second))),
+                    sessions: AtomicUsize::new(0),
                 };
                 (t.name.clone(), Arc::new(rt))
             })
@@ -248,14 +308,22 @@ impl Server {
             None => (None, None),
         };
 
+        if let Some(m) = config.metrics.filter(|m| !m.ip().is_loopback()) {
+            tracing::warn!(metrics = %m, "the metrics endpoint listens beyond loopback: keep it on a private network (docs/DEPLOY.md)");
+        }
         let shared = Arc::new(Shared {
-            cfg: config,
             dbs,
             tenants,
-            dummy_token_hash: sha256(b"planet-server: no such tenant"),
+            dummy_token: Token::new("planet-server: no such tenant"),
+            failed_hellos: limit::KeyedBuckets::per_minute(config.max_failed_hellos_per_minute),
+            cfg: config,
             metrics,
             http,
             active: AtomicUsize::new(0),
+            sessions: AtomicUsize::new(0),
+            pending: AtomicUsize::new(0),
+            per_address: Mutex::new(HashMap::new()),
+            record_alerts: limit::RecordAlerts::default(),
         });
         let (shutdown_tx, shutdown_rx) = watch::channel(false);
         let accept_task = tokio::spawn(accept_loop(
@@ -282,9 +350,15 @@ impl Server {
 
 fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, ServerError> {
     let mut t = quinn::TransportConfig::default();
-    let streams = cfg.max_tenant_in_flight() + 1 + conn::STREAM_MARGIN;
-    t.max_concurrent_bidi_streams(VarInt::from_u32(streams));
+    // Before authentication a client may open only the control stream; the
+    // tenant's budget (`max_in_flight` + 1 + margin) is granted with the
+    // Welcome (`Connection::set_max_concurrent_bi_streams`).
+    t.max_concurrent_bidi_streams(VarInt::from_u32(1));
     t.max_concurrent_uni_streams(VarInt::from_u32(0));
+    // No QUIC datagrams: the protocol does not use them, and with them
+    // enabled quinn advertises `max_datagram_frame_size` and buffers about
+    // 1.25 MB of unread datagrams per connection, before authentication.
+    t.datagram_receive_buffer_size(None);
     // Clients send 25-byte requests: small receive windows bound the memory
     // a connection can make us buffer.
     t.stream_receive_window(VarInt::from_u32(64 * 1024));
@@ -337,35 +411,81 @@ async fn accept_loop(
             _ = shutdown.wait_for(|s| *s) => break,
         };
         let Some(incoming) = incoming else { break };
+        let peer = incoming.remote_address();
+        let count = |outcome: &str| {
+            shared
+                .metrics
+                .connections_total
+                .with_label_values(&[outcome])
+                .inc()
+        };
+        // Pre-authentication budget, checked before any cryptography:
+        // refusing costs one stateless CONNECTION_CLOSE packet.
+        let pending = shared.pending.load(Ordering::Acquire);
+        if pending >= shared.cfg.max_pending_handshakes {
+            count("refused");
+            tracing::debug!(%peer, pending, "too many pending handshakes, refusing");
+            incoming.refuse();
+            continue;
+        }
+        // Under load, make clients prove their address (QUIC Retry) before
+        // they get any state, so spoofed sources cannot hold slots.
+        if pending >= shared.cfg.retry_above_pending
+            && !incoming.remote_address_validated()
+            && incoming.may_retry()
+        {
+            count("retry");
+            if let Err(e) = incoming.retry() {
+                tracing::debug!(%peer, error = %e, "retry failed");
+            }
+            continue;
+        }
+        let Some(address) = AddressGuard::try_new(&shared, peer.ip()) else {
+            count("refused");
+            tracing::debug!(%peer, "per-address connection limit reached, refusing");
+            incoming.refuse();
+            continue;
+        };
+        // One deadline for the whole unauthenticated phase, shorter under
+        // load: a client that is not flooding completes in a few round
+        // trips, while each slot a flooder holds costs it a handshake per
+        // deadline.
+        let timeout = if pending >= shared.cfg.retry_above_pending {
+            shared
+                .cfg
+                .handshake_timeout_under_load
+                .min(shared.cfg.handshake_timeout)
+        } else {
+            shared.cfg.handshake_timeout
+        };
+        let deadline = tokio::time::Instant::now() + timeout;
+        let pending = PendingGuard::new(&shared);
         let shared = Arc::clone(&shared);
         let shutdown = shutdown.clone();
         conns.spawn(async move {
-            let peer = incoming.remote_address();
-            let over = shared.active.fetch_add(1, Ordering::AcqRel) >= shared.cfg.max_connections;
+            let _address = address;
+            shared.active.fetch_add(1, Ordering::AcqRel);
             shared.metrics.connections_active.inc();
             let guard = ActiveGuard(Arc::clone(&shared));
-            // A refused connection completes its handshake first: a close
-            // sent during the handshake cannot carry the application code.
-            let Some(conn) = handshake(incoming, shared.cfg.zero_rtt && !over).await else {
-                return;
+            let handshake = handshake(incoming, shared.cfg.zero_rtt);
+            let conn = match tokio::time::timeout_at(deadline, handshake).await {
+                Ok(Some(conn)) => conn,
+                Ok(None) => {
+                    shared.metrics.handshake(metrics::HandshakeEnd::Lost);
+                    return;
+                }
+                Err(_) => {
+                    shared.metrics.handshake(metrics::HandshakeEnd::Timeout);
+                    tracing::debug!(%peer, "QUIC handshake not done within the handshake timeout");
+                    return;
+                }
             };
-            if over {
-                shared
-                    .metrics
-                    .connections_total
-                    .with_label_values(&["rejected"])
-                    .inc();
-                tracing::warn!(%peer, max = shared.cfg.max_connections, "connection limit reached, refusing");
-                conn.close(VarInt::from_u32(quic::CONNECTION_CLOSED_BUSY), b"server busy");
-                drop(guard);
-                return;
-            }
             shared
                 .metrics
                 .connections_total
                 .with_label_values(&["accepted"])
                 .inc();
-            conn::serve_connection(conn, Arc::clone(&shared), shutdown).await;
+            conn::serve_connection(conn, Arc::clone(&shared), shutdown, deadline, pending).await;
             drop(guard);
         });
     }

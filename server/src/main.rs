@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! planet-server --config /etc/planet/server.toml [--log-format json]
-//! planet-server --database DB --listen ADDR --dev-cert [--metrics ADDR] [--token T]
+//! planet-server --database DB --listen ADDR --dev-cert [--metrics ADDR] [--token T] [--dev]
 //! planet-server healthcheck --url http://127.0.0.1:9100/healthz
 //! ```
 //! SIGHUP re-opens the database files; SIGTERM / SIGINT drain and exit.
@@ -84,6 +84,10 @@ struct RunArgs {
     /// its SHA-256 fingerprint on stdout.
     #[arg(long, conflicts_with_all = ["cert", "key"])]
     dev_cert: bool,
+    /// Development mode: accept empty, short or placeholder tokens (implied
+    /// by --dev-cert and by a config file without cert/key).
+    #[arg(long)]
+    dev: bool,
     /// Ceiling of QUIC path-MTU discovery in bytes (overrides the config;
     /// default 1452). Clients bound it by their own `max_udp_payload_size`
     /// (planet clients: 1472, or 16384 to a loopback server); 16384 helps
@@ -94,6 +98,10 @@ struct RunArgs {
     /// config; default 65536, QUIC's own default is about 14 720).
     #[arg(long)]
     initial_window: Option<u64>,
+    /// Connections one client IP may hold (overrides the config; default
+    /// 64). Benchmarks that simulate many clients from one address raise it.
+    #[arg(long)]
+    max_connections_per_address: Option<usize>,
     /// Refuse 0-RTT data (resuming clients then wait one more round trip
     /// for their Welcome). Overrides `zero_rtt` in the config.
     #[arg(long)]
@@ -177,6 +185,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     if let Some(w) = args.initial_window {
         cfg.initial_window = w;
     }
+    if let Some(m) = args.max_connections_per_address {
+        cfg.max_connections_per_address = m;
+    }
     if args.no_zero_rtt {
         cfg.zero_rtt = false;
     }
@@ -190,6 +201,7 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     } else if args.database.is_some() {
         bail!("--database mode needs --dev-cert or --cert/--key");
     }
+    cfg.dev = args.dev || matches!(cfg.tls, TlsSource::DevCert);
     cfg.validate()?;
     Ok(cfg)
 }

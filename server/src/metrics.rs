@@ -40,11 +40,87 @@ pub enum RequestOutcome {
     Corrupt,
     /// Server-side failure or shutdown.
     Error,
-    /// The request was not received within the request-read deadline.
+    /// The request was not received within the request-read deadline, or
+    /// its response could not be written within the write deadline.
     Timeout,
+    /// The database file could not be read (truncated, I/O error).
+    Storage,
+}
+
+/// Label values of `planet_connections_total{outcome}`: accepted (QUIC
+/// handshake done), rejected at `max_connections` (its hello refused with
+/// `server_busy`), refused by the pending-handshake or per-address budget
+/// (before any cryptography), asked to validate its address (Retry).
+pub const CONNECTION_OUTCOMES: [&str; 4] = ["accepted", "rejected", "refused", "retry"];
+
+/// How an unauthenticated connection's handshake ended: the `outcome` of
+/// `planet_handshakes_total`. Every connection that passes the accept
+/// limits ends its pre-authentication phase with exactly one of these
+/// (connections refused at `max_connections` are counted in
+/// `planet_connections_total{outcome="rejected"}` instead).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HandshakeEnd {
+    /// Welcome written: the session is established.
+    Ok,
+    /// Refused with this error code (unauthorized, forbidden, ...).
+    Refused(planet_protocol::ErrorCode),
+    /// The handshake deadline passed (QUIC handshake, control stream,
+    /// Hello, or writing the Welcome or error reply).
+    Timeout,
+    /// The peer went away before an outcome.
+    Lost,
+}
+
+impl HandshakeEnd {
+    /// Every label value, for pre-registration and the contract.
+    pub const LABELS: [&'static str; 10] = [
+        "ok",
+        "unauthorized",
+        "forbidden",
+        "unknown_database",
+        "unsupported_version",
+        "malformed",
+        "rate_limited",
+        "busy",
+        "timeout",
+        "lost",
+    ];
+
+    /// The label value.
+    pub fn as_str(self) -> &'static str {
+        use planet_protocol::ErrorCode as C;
+        match self {
+            HandshakeEnd::Ok => "ok",
+            HandshakeEnd::Timeout => "timeout",
+            HandshakeEnd::Lost => "lost",
+            HandshakeEnd::Refused(code) => match code {
+                C::Unauthorized => "unauthorized",
+                C::Forbidden => "forbidden",
+                C::UnknownDatabase => "unknown_database",
+                C::UnsupportedVersion => "unsupported_version",
+                C::RateLimited => "rate_limited",
+                C::ServerBusy => "busy",
+                C::Timeout => "timeout",
+                _ => "malformed",
+            },
+        }
+    }
 }
 
 impl RequestOutcome {
+    /// Every outcome.
+    pub const ALL: [RequestOutcome; 9] = [
+        RequestOutcome::Ok,
+        RequestOutcome::Invalid,
+        RequestOutcome::Unauthorized,
+        RequestOutcome::Cancelled,
+        RequestOutcome::RateLimited,
+        RequestOutcome::Corrupt,
+        RequestOutcome::Error,
+        RequestOutcome::Timeout,
+        RequestOutcome::Storage,
+    ];
+
     /// The label value.
     pub fn as_str(self) -> &'static str {
         match self {
@@ -56,6 +132,7 @@ impl RequestOutcome {
             RequestOutcome::Corrupt => "corrupt",
             RequestOutcome::Error => "error",
             RequestOutcome::Timeout => "timeout",
+            RequestOutcome::Storage => "storage",
         }
     }
 
@@ -69,6 +146,7 @@ impl RequestOutcome {
             C::Cancelled => RequestOutcome::Cancelled,
             C::Internal | C::ShuttingDown | C::ServerBusy => RequestOutcome::Error,
             C::Timeout => RequestOutcome::Timeout,
+            C::Storage => RequestOutcome::Storage,
             _ => RequestOutcome::Invalid,
         }
     }
@@ -86,6 +164,12 @@ pub struct Metrics {
     pub connections_total: IntCounterVec,
     /// `planet_handshakes_total{outcome}`.
     pub handshakes_total: IntCounterVec,
+    /// `planet_handshakes_pending`.
+    pub handshakes_pending: IntGauge,
+    /// `planet_storage_errors_total{database}`.
+    pub storage_errors_total: IntCounterVec,
+    /// `planet_corrupt_records_total{database}`.
+    pub corrupt_records_total: IntCounterVec,
     /// `planet_requests_total{tenant,database,outcome}`.
     pub requests_total: IntCounterVec,
     /// `planet_bytes_sent_total{tenant,database}`.
@@ -115,16 +199,34 @@ impl Metrics {
         let connections_total = IntCounterVec::new(
             Opts::new(
                 "planet_connections_total",
-                "Incoming connections by outcome (accepted or rejected at the limit)",
+                "Incoming connections by outcome: accepted (QUIC handshake done), rejected (hello refused at max_connections), refused (pending-handshake or per-address budget, before any cryptography), retry (asked to validate its address)",
             ),
             &["outcome"],
         )?;
         let handshakes_total = IntCounterVec::new(
             Opts::new(
                 "planet_handshakes_total",
-                "Control-stream handshakes by outcome",
+                "How unauthenticated connections ended, by outcome",
             ),
             &["outcome"],
+        )?;
+        let handshakes_pending = IntGauge::new(
+            "planet_handshakes_pending",
+            "Connections not yet authenticated (max_pending_handshakes)",
+        )?;
+        let storage_errors_total = IntCounterVec::new(
+            Opts::new(
+                "planet_storage_errors_total",
+                "Requests that failed because the database file could not be read",
+            ),
+            &["database"],
+        )?;
+        let corrupt_records_total = IntCounterVec::new(
+            Opts::new(
+                "planet_corrupt_records_total",
+                "Distinct records found failing their checksum (each counted once per process)",
+            ),
+            &["database"],
         )?;
         let requests_total = IntCounterVec::new(
             Opts::new("planet_requests_total", "Record requests by outcome"),
@@ -172,6 +274,9 @@ impl Metrics {
         registry.register(Box::new(connections_active.clone()))?;
         registry.register(Box::new(connections_total.clone()))?;
         registry.register(Box::new(handshakes_total.clone()))?;
+        registry.register(Box::new(handshakes_pending.clone()))?;
+        registry.register(Box::new(storage_errors_total.clone()))?;
+        registry.register(Box::new(corrupt_records_total.clone()))?;
         registry.register(Box::new(requests_total.clone()))?;
         registry.register(Box::new(bytes_sent_total.clone()))?;
         registry.register(Box::new(request_duration.clone()))?;
@@ -187,17 +292,10 @@ impl Metrics {
         build_info
             .with_label_values(&[env!("CARGO_PKG_VERSION")])
             .set(1);
-        for outcome in ["accepted", "rejected"] {
+        for outcome in CONNECTION_OUTCOMES {
             connections_total.with_label_values(&[outcome]);
         }
-        for outcome in [
-            "ok",
-            "unauthorized",
-            "forbidden",
-            "unknown_database",
-            "unsupported_version",
-            "malformed",
-        ] {
+        for outcome in HandshakeEnd::LABELS {
             handshakes_total.with_label_values(&[outcome]);
         }
         Ok(Metrics {
@@ -205,6 +303,9 @@ impl Metrics {
             connections_active,
             connections_total,
             handshakes_total,
+            handshakes_pending,
+            storage_errors_total,
+            corrupt_records_total,
             requests_total,
             bytes_sent_total,
             request_duration,
@@ -219,9 +320,18 @@ impl Metrics {
     /// Pre-creates the per-database series so they show up as 0.
     pub fn init_database(&self, db: &str, size: u64) {
         self.database_reloads_total.with_label_values(&[db]);
+        self.storage_errors_total.with_label_values(&[db]);
+        self.corrupt_records_total.with_label_values(&[db]);
         self.database_size_bytes
             .with_label_values(&[db])
             .set(i64::try_from(size).unwrap_or(i64::MAX));
+    }
+
+    /// Counts how one unauthenticated connection ended.
+    pub fn handshake(&self, end: HandshakeEnd) {
+        self.handshakes_total
+            .with_label_values(&[end.as_str()])
+            .inc();
     }
 
     /// Counts one finished request.

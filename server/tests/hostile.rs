@@ -430,20 +430,18 @@ fn control_stream_violations_and_requests_before_hello() {
                 let hello = acme().encode_frame().unwrap();
                 let mut n = 0u64;
                 while ctl.go().await {
-                    // Requests before the hello is complete: hello_required
-                    // heads, the connection is kept, and completing the hello
-                    // makes requests work.
+                    // Before the hello is complete a client has the stream
+                    // budget of the hello only: no request stream opens, the
+                    // connection is kept, and completing the hello grants
+                    // the tenant's streams.
                     let conn = ep.connect(addr, "localhost").unwrap().await.unwrap();
                     let (mut ctrl, _ctrl_recv) = conn.open_bi().await.unwrap();
                     ctrl.write_all(&hello[..3]).await.unwrap();
                     tokio::time::sleep(Duration::from_millis(20)).await;
-                    for _ in 0..8 {
-                        assert_eq!(
-                            raw_request(&conn, &req).await,
-                            Some(ErrorCode::HelloRequired)
-                        );
-                        n += 1;
-                    }
+                    let early =
+                        tokio::time::timeout(Duration::from_millis(50), conn.open_bi()).await;
+                    assert!(early.is_err(), "a request stream opened before the hello");
+                    n += 1;
                     ctrl.write_all(&hello[3..]).await.unwrap();
                     let mut ok = false;
                     for _ in 0..50 {
@@ -493,7 +491,10 @@ fn control_stream_violations_and_requests_before_hello() {
 fn wrong_tokens_in_a_row_and_other_tenants_database() {
     let _g = serial();
     runtime().block_on(async {
-        let fx = fixture(|_| {}).await;
+        // Every client here shares 127.0.0.1: the per-address limit of
+        // failed hellos is off (resources.rs
+        // failed_hellos_are_limited_per_address tests it).
+        let fx = fixture(|c| c.max_failed_hellos_per_minute = 0).await;
         let fp = fx.h.cert_fingerprint().to_string();
         let addr = fx.h.local_addr();
         let (n, codes) = under_attack(&fx, "wrong tokens", move |ctl| {
@@ -546,7 +547,8 @@ fn wrong_tokens_in_a_row_and_other_tenants_database() {
         .await;
         eprintln!("hostile[wrong tokens]: {n} rejected hellos {codes:?}");
         assert!(n >= WRONG_HELLOS);
-        // No lockout: the right token works right after the failures.
+        // Without the per-address limit, the right token works right after
+        // the failures.
         let (conn, _) = connect(&fx.h, acme()).await.unwrap();
         // Offsets of the other tenant's database, asked in our session, are
         // validated against our database: never a byte of the other file.
@@ -1263,6 +1265,94 @@ fn thousands_of_connections_opened_and_dropped() {
         assert!(n >= TOTAL);
         // Every connection is accounted for: only the good client remains.
         wait_active(&fx.h, 1, Duration::from_secs(10)).await;
+        assert_healthy(&fx).await;
+        fx.h.shutdown().await;
+    });
+}
+
+#[test]
+fn a_flooding_tenant_is_held_to_its_connection_and_request_limits() {
+    // Tenant `other` floods: 4 clients, each with its whole in-flight
+    // budget busy, unpaced; refused clients retry after 1 s (a client's
+    // reconnect backoff: unpaced handshakes are a CPU DoS of their own,
+    // docs/SECURITY.md). Its limits (2 sessions, 200 requests/s) keep it
+    // from taking the server from `acme`, whose good client must keep 90 %
+    // of its throughput.
+    let _g = serial();
+    runtime().block_on(async {
+        let fx = fixture(|c| {
+            c.tenants[1].max_connections = 2;
+            c.tenants[1].max_requests_per_second = 200;
+        })
+        .await;
+        let fp = fx.h.cert_fingerprint().to_string();
+        let addr = fx.h.local_addr();
+        let mars = Arc::new(fx.mars_recs.clone());
+        let started = Instant::now();
+        let (served, refused) = under_attack(&fx, "tenant flood", move |ctl| {
+            let (fp, mars) = (fp.clone(), Arc::clone(&mars));
+            async move {
+                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let served = Arc::new(AtomicU64::new(0));
+                let refused = Arc::new(AtomicU64::new(0));
+                let mut clients = Vec::new();
+                for c in 0..4u64 {
+                    let (tls, mars, ctl) = (tls.clone(), Arc::clone(&mars), ctl.clone());
+                    let (served, refused) = (Arc::clone(&served), Arc::clone(&refused));
+                    clients.push(tokio::spawn(async move {
+                        while ctl.go().await {
+                            let hello = Hello::new("other", "t0ken", "mars");
+                            let conn = match Connection::connect(addr, "localhost", tls.clone(), hello).await {
+                                Ok((conn, _)) => conn,
+                                Err(NetError::Rejected(e)) => {
+                                    assert_eq!(e.code, ErrorCode::ServerBusy);
+                                    refused.fetch_add(1, Ordering::Relaxed);
+                                    tokio::time::sleep(Duration::from_secs(1)).await;
+                                    continue;
+                                }
+                                Err(e) => panic!("{e:?}"),
+                            };
+                            let mut id = c << 40;
+                            while ctl.go().await {
+                                let mut batch = Vec::new();
+                                for _ in 0..4 {
+                                    let (off, size) = mars[id as usize % mars.len()];
+                                    batch.push(conn.spawn_fetch(id, off, size));
+                                    id += 1;
+                                }
+                                for f in batch {
+                                    match f.join().await {
+                                        Ok(_) => {
+                                            served.fetch_add(1, Ordering::Relaxed);
+                                        }
+                                        Err(NetError::Server(e)) => {
+                                            assert_eq!(e.code, ErrorCode::RateLimited)
+                                        }
+                                        Err(e) => panic!("{e:?}"),
+                                    }
+                                }
+                            }
+                            conn.close();
+                        }
+                    }));
+                }
+                for c in clients {
+                    c.await.unwrap();
+                }
+                (served.load(Ordering::Relaxed), refused.load(Ordering::Relaxed))
+            }
+        })
+        .await;
+        let elapsed = started.elapsed().as_secs_f64();
+        eprintln!(
+            "hostile[tenant flood]: {served} records served to the flooder in {elapsed:.1} s (limit 200/s), {refused} sessions refused"
+        );
+        assert!(refused > 0, "the tenant connection cap never applied");
+        // The last attempt's flood ran for at most `elapsed`; one second of
+        // burst is allowed.
+        assert!((served as f64) <= 200.0 * (elapsed + 1.0), "{served} in {elapsed:.1} s");
+        let text = scrape(&fx.h).await;
+        assert!(metric(&text, "planet_handshakes_total", &[("outcome", "busy")]) >= 1.0);
         assert_healthy(&fx).await;
         fx.h.shutdown().await;
     });

@@ -220,7 +220,7 @@ fn connection_and_stream_limits() {
             ),
             10.0
         );
-        assert_eq!(h.active_connections(), 5);
+        wait_active(&h, 5, Duration::from_secs(3)).await;
 
         // Stream limit: streams whose request never completes stay open
         // until REQUEST_READ_TIMEOUT; the server allows max_in_flight +
@@ -311,7 +311,8 @@ fn idle_vanished_peers_and_slow_clients_are_closed() {
         assert!(after >= Duration::from_millis(900), "{after:?}");
 
         // A peer that completes QUIC but never sends a hello (slowloris on
-        // the control stream) is closed with hello_required after 10 s, even
+        // the control stream) is closed with hello_required after the
+        // handshake deadline (5 s by default), even
         // though keep-alives keep the QUIC connection alive; a request
         // stream whose request never completes is reset with `timeout` after 10 s.
         let (_ep, silent) = raw_connect(&h).await;
@@ -351,11 +352,8 @@ fn idle_vanished_peers_and_slow_clients_are_closed() {
         }
         let text = scrape(&h).await;
         assert!(
-            metric(
-                &text,
-                "planet_handshakes_total",
-                &[("outcome", "malformed")]
-            ) >= 1.0
+            metric(&text, "planet_handshakes_total", &[("outcome", "timeout")]) >= 1.0,
+            "the silent connection is counted as a handshake timeout"
         );
         slow.close(0u32.into(), b"");
         wait_active(&h, 0, Duration::from_secs(5)).await;
@@ -627,6 +625,397 @@ fn database_replaced_atomically_while_clients_stream() {
             ),
             3.0
         );
+        h.shutdown().await;
+    });
+}
+
+/// How a raw connection was closed: the application code, if any.
+async fn close_code(conn: &quinn::Connection) -> Option<u64> {
+    match tokio::time::timeout(Duration::from_secs(10), conn.closed()).await {
+        Ok(quinn::ConnectionError::ApplicationClosed(c)) => Some(c.error_code.into_inner()),
+        Ok(other) => panic!("closed without an application code: {other:?}"),
+        Err(_) => panic!("not closed within 10 s"),
+    }
+}
+
+#[test]
+fn zero_window_clients_lose_their_slots_within_the_handshake_deadline() {
+    // Clients that send a Hello (valid, with a wrong token, or garbage) and
+    // then advertise a zero receive window: the server cannot write the
+    // Welcome or the error reply. Until 2026-11-24 those writes had no
+    // deadline, and such clients held `max_connections` slots forever.
+    // Unauthenticated connections now count against their own budget,
+    // `max_pending_handshakes`, which they fill here.
+    let _g = serial();
+    let rt = runtime();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    cfg.max_pending_handshakes = 6;
+    cfg.retry_above_pending = 100;
+    cfg.handshake_timeout = Duration::from_secs(1);
+    let h = rt.block_on(Server::start(cfg)).unwrap();
+    rt.block_on(async {
+        let mut t = quinn::TransportConfig::default();
+        t.stream_receive_window(quinn::VarInt::from_u32(0));
+        t.receive_window(quinn::VarInt::from_u32(0));
+        let ep = endpoint_on(&h, "127.0.0.1", Some(t));
+        let hellos: [(Vec<u8>, ErrorCode); 3] = [
+            (acme().encode_frame().unwrap(), ErrorCode::Timeout),
+            (
+                Hello::new("acme", "wrong", "earth").encode_frame().unwrap(),
+                ErrorCode::Unauthorized,
+            ),
+            (vec![3, 0, 0, 0, 0x01, 1, 2], ErrorCode::Malformed),
+        ];
+        let started = Instant::now();
+        let mut held = Vec::new();
+        for i in 0..6 {
+            let conn = ep
+                .connect(h.local_addr(), "localhost")
+                .unwrap()
+                .await
+                .unwrap();
+            let (mut send, recv) = conn.open_bi().await.unwrap();
+            let (bytes, code) = &hellos[i % 3];
+            send.write_all(bytes).await.unwrap();
+            held.push((conn, send, recv, *code));
+        }
+        assert_eq!(h.active_connections(), 6);
+        // Every pending slot is taken: a fresh client is refused...
+        let busy = connect(&h, acme()).await;
+        assert!(busy.is_err(), "a 7th connection was accepted");
+        // ...until the handshake deadline frees them.
+        let freed = wait_active(&h, 0, Duration::from_secs(5)).await;
+        let freed = started.elapsed().max(freed);
+        eprintln!("6 zero-window clients lost their slots after {freed:?} (handshake_timeout 1 s)");
+        for (conn, _s, _r, code) in &held {
+            assert_eq!(close_code(conn).await, Some(u64::from(code.to_quic())));
+        }
+        let (good, welcome) = connect(&h, acme()).await.unwrap();
+        assert_eq!(fetch_tree(&good, &welcome).await.len(), recs.len());
+        let text = scrape(&h).await;
+        let m = |o| metric(&text, "planet_handshakes_total", &[("outcome", o)]);
+        assert_eq!(m("timeout"), 2.0, "{text}");
+        assert_eq!(m("unauthorized"), 2.0);
+        assert_eq!(m("malformed"), 2.0);
+        assert_eq!(m("ok"), 1.0);
+        assert_eq!(metric(&text, "planet_handshakes_pending", &[]), 0.0);
+        assert_eq!(
+            metric(&text, "planet_connections_total", &[("outcome", "refused")]),
+            1.0
+        );
+        good.close();
+        drop(held);
+        h.shutdown().await;
+    });
+}
+
+#[test]
+fn response_writes_have_a_deadline() {
+    // An authenticated client whose requests' responses it never reads
+    // (stream window of 256 bytes) gets them reset with `timeout` after
+    // `write_timeout`, which frees its in-flight slots.
+    let _g = serial();
+    let rt = runtime();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    cfg.write_timeout = Duration::from_millis(500);
+    let h = rt.block_on(Server::start(cfg)).unwrap();
+    rt.block_on(async {
+        let mut t = quinn::TransportConfig::default();
+        t.stream_receive_window(quinn::VarInt::from_u32(256));
+        let opts = ConnectOptions {
+            transport: Some(Arc::new(t)),
+            ..ConnectOptions::default()
+        };
+        let (c, _) = connect_opts(&h, acme(), &opts).await.unwrap();
+        let mut held = Vec::new();
+        for i in 0..4u64 {
+            let (off, size) = recs[i as usize];
+            let req = LodRequest {
+                id: i,
+                offset: off,
+                size,
+            };
+            let (mut s, r) = c.quinn().open_bi().await.unwrap();
+            s.write_all(&req.encode_frame().unwrap()).await.unwrap();
+            s.finish().unwrap();
+            held.push(r);
+        }
+        let text = wait_metrics(&h, |t| {
+            metric(t, "planet_requests_total", &[("outcome", "timeout")]) >= 4.0
+        })
+        .await;
+        assert_eq!(metric(&text, "planet_requests_in_flight", &[]), 0.0);
+        for mut r in held {
+            let mut buf = vec![0u8; 1 << 16];
+            let got = loop {
+                match r.read(&mut buf).await {
+                    Ok(Some(_)) => continue,
+                    other => break other,
+                }
+            };
+            match got {
+                Err(quinn::ReadError::Reset(code)) => {
+                    assert_eq!(code.into_inner(), u64::from(ErrorCode::Timeout.to_quic()))
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        // The session is still usable within its in-flight budget.
+        let (off, size) = recs[5];
+        assert_eq!(c.fetch(9, off, size).await.unwrap().len(), size as usize);
+        c.close();
+        h.shutdown().await;
+    });
+}
+
+#[test]
+fn pending_handshakes_have_their_own_budget_and_retry() {
+    let _g = serial();
+    let rt = runtime();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    cfg.max_pending_handshakes = 4;
+    cfg.retry_above_pending = 2;
+    cfg.handshake_timeout = Duration::from_secs(1);
+    let h = rt.block_on(Server::start(cfg)).unwrap();
+    rt.block_on(async {
+        // Half-open: QUIC done, no control stream. Each holds a pending slot
+        // (not one of max_connections) until the handshake deadline.
+        // One endpoint each: a quinn endpoint keeps the server's NEW_TOKEN
+        // address-validation tokens, which would spare it the Retry.
+        let mut half_open = Vec::new();
+        let mut endpoints = Vec::new();
+        for _ in 0..4 {
+            let ep = endpoint_on(&h, "127.0.0.1", None);
+            let c = ep.connect(h.local_addr(), "localhost").unwrap().await;
+            half_open.push(c.expect("half-open connection within the budget"));
+            endpoints.push(ep);
+        }
+        let ep = endpoint_on(&h, "127.0.0.1", None);
+        let text = scrape(&h).await;
+        assert_eq!(metric(&text, "planet_handshakes_pending", &[]), 4.0);
+        // Beyond 2 pending, clients were asked to validate their address
+        // (quinn clients answer a Retry by themselves).
+        assert!(
+            metric(&text, "planet_connections_total", &[("outcome", "retry")]) >= 2.0,
+            "{text}"
+        );
+        // The pending budget is full: refused before any cryptography.
+        let refused = ep.connect(h.local_addr(), "localhost").unwrap().await;
+        assert!(
+            matches!(refused, Err(quinn::ConnectionError::ConnectionClosed(_))),
+            "{refused:?}"
+        );
+        let text = scrape(&h).await;
+        assert!(metric(&text, "planet_connections_total", &[("outcome", "refused")]) >= 1.0);
+        for c in &half_open {
+            assert_eq!(
+                close_code(c).await,
+                Some(u64::from(ErrorCode::HelloRequired.to_quic()))
+            );
+        }
+        let text = wait_metrics(&h, |t| metric(t, "planet_handshakes_pending", &[]) == 0.0).await;
+        assert_eq!(
+            metric(&text, "planet_handshakes_total", &[("outcome", "timeout")]),
+            4.0
+        );
+        // Authenticated sessions do not count against the pending budget,
+        // nor pending connections against max_connections.
+        let mut sessions = Vec::new();
+        for _ in 0..6 {
+            sessions.push(connect(&h, acme()).await.unwrap().0);
+        }
+        let (off, size) = recs[0];
+        assert_eq!(
+            sessions[5].fetch(1, off, size).await.unwrap().len(),
+            size as usize
+        );
+        for s in sessions {
+            s.close();
+        }
+        h.shutdown().await;
+    });
+}
+
+#[test]
+fn connections_and_failed_hellos_are_limited_per_address() {
+    let _g = serial();
+    let rt = runtime();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, recs) = two_tenant_config(dir.path());
+    cfg.max_connections_per_address = 3;
+    cfg.max_failed_hellos_per_minute = 5;
+    let h = rt.block_on(Server::start(cfg)).unwrap();
+    rt.block_on(async {
+        let attacker = endpoint_on(&h, "127.0.0.2", None);
+        let opts = ConnectOptions::default();
+        let opts = &opts;
+        let on = |ep: &quinn::Endpoint, hello: Hello| {
+            let ep = ep.clone();
+            let (addr, tls) = (h.local_addr(), tls_for(&h));
+            async move { Connection::connect_on(&ep, addr, "localhost", tls, hello, opts).await }
+        };
+        // Failed hellos: 5 are answered `unauthorized`, then every hello
+        // from that address is `rate_limited`, the right token included.
+        for i in 0..8 {
+            let r = on(&attacker, Hello::new("acme", format!("guess{i}"), "earth")).await;
+            let want = if i < 5 {
+                ErrorCode::Unauthorized
+            } else {
+                ErrorCode::RateLimited
+            };
+            match r {
+                Err(NetError::Rejected(e)) => assert_eq!(e.code, want, "hello {i}"),
+                other => panic!("hello {i}: {:?}", other.err()),
+            }
+        }
+        match on(&attacker, acme()).await {
+            Err(NetError::Rejected(e)) => assert_eq!(e.code, ErrorCode::RateLimited),
+            other => panic!("{:?}", other.err()),
+        }
+        // Another address is not affected.
+        let (good, _) = connect(&h, acme()).await.unwrap();
+        let (off, size) = recs[0];
+        assert_eq!(good.fetch(1, off, size).await.unwrap().len(), size as usize);
+
+        // Connections per address: 3 from 127.0.0.3, the 4th is refused.
+        let third = endpoint_on(&h, "127.0.0.3", None);
+        let mut held = Vec::new();
+        for _ in 0..3 {
+            held.push(on(&third, acme()).await.unwrap().0);
+        }
+        assert!(on(&third, acme()).await.is_err(), "4th connection accepted");
+        let text = scrape(&h).await;
+        assert!(metric(&text, "planet_connections_total", &[("outcome", "refused")]) >= 1.0);
+        assert!(
+            metric(
+                &text,
+                "planet_handshakes_total",
+                &[("outcome", "rate_limited")]
+            ) >= 4.0
+        );
+        // Closing one frees its place.
+        held.pop().unwrap().close();
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let again = on(&third, acme()).await.unwrap().0;
+        assert_eq!(
+            again.fetch(2, off, size).await.unwrap().len(),
+            size as usize
+        );
+        again.close();
+        good.close();
+        for c in held {
+            c.close();
+        }
+        h.shutdown().await;
+    });
+}
+
+#[test]
+fn a_database_truncated_in_place_gives_storage_errors_not_a_crash() {
+    // A served file truncated in place (the operational mistake that
+    // raises SIGBUS under a memory map): with the default `pread` storage
+    // the records that are gone fail with `storage`, the others are still
+    // served, and the other tenant's database is unaffected.
+    let _g = serial();
+    let rt = runtime();
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    assert_eq!(cfg.storage, planet_server::StorageMode::Pread);
+    let earth = dir.path().join("earth.planetdb");
+    let file = file_bytes(&earth);
+    let mars_recs = {
+        let mars = file_bytes(&dir.path().join("mars.planetdb"));
+        let header_offset = u64::from_le_bytes(mars[16..24].try_into().unwrap());
+        let mut out = Vec::new();
+        let mut off = 64u64;
+        while off < header_offset {
+            let len = planet_core::format::peek_record_len(&mars[off as usize..]).unwrap();
+            out.push((off, len));
+            off += u64::from(len);
+        }
+        out
+    };
+    let h = rt.block_on(Server::start(cfg)).unwrap();
+    rt.block_on(async {
+        let (conn, _) = connect(&h, acme()).await.unwrap();
+        let other = Hello::new("other", "t0ken", "mars");
+        let (mars_conn, _) = connect(&h, other).await.unwrap();
+        // Streaming before the fault.
+        for (i, (off, size)) in recs.iter().enumerate() {
+            let body = conn.fetch(i as u64, *off, *size).await.unwrap();
+            assert_eq!(
+                &body[..],
+                &file[*off as usize..(*off + u64::from(*size)) as usize]
+            );
+        }
+        // Truncate in place to half the records.
+        let cut = recs[recs.len() / 2].0;
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&earth)
+            .unwrap()
+            .set_len(cut)
+            .unwrap();
+        let (mut ok, mut storage) = (0, 0);
+        for round in 0..3u64 {
+            for (i, (off, size)) in recs.iter().enumerate() {
+                let id = 1000 * (round + 1) + i as u64;
+                match conn.fetch(id, *off, *size).await {
+                    Ok(body) => {
+                        assert!(off + u64::from(*size) <= cut, "record past the cut served");
+                        assert_eq!(
+                            &body[..],
+                            &file[*off as usize..(*off + u64::from(*size)) as usize]
+                        );
+                        ok += 1;
+                    }
+                    // `storage` is a QUIC-only code: the stream is reset
+                    // with it (docs/PROTOCOL.md §6).
+                    Err(e) if e.code() == Some(ErrorCode::Storage) => {
+                        assert!(off + u64::from(*size) > cut, "{e:?}");
+                        storage += 1;
+                    }
+                    Err(e) => panic!("{e:?}"),
+                }
+            }
+        }
+        eprintln!("after truncation: {ok} records served, {storage} storage errors");
+        assert!(ok > 0 && storage > 0);
+        // The other tenant keeps working, and so does the server.
+        for (i, (off, size)) in mars_recs.iter().enumerate() {
+            assert_eq!(
+                mars_conn.fetch(i as u64, *off, *size).await.unwrap().len(),
+                *size as usize
+            );
+        }
+        let (status, _) = http_get(h.metrics_addr().unwrap(), "/healthz").await;
+        assert_eq!(status, 200);
+        let text = scrape(&h).await;
+        assert_eq!(
+            metric(
+                &text,
+                "planet_storage_errors_total",
+                &[("database", "earth")]
+            ),
+            storage as f64
+        );
+        assert_eq!(
+            metric(&text, "planet_requests_total", &[("outcome", "storage")]),
+            storage as f64
+        );
+        assert_eq!(
+            metric(
+                &text,
+                "planet_storage_errors_total",
+                &[("database", "mars")]
+            ),
+            0.0
+        );
+        conn.close();
+        mars_conn.close();
         h.shutdown().await;
     });
 }

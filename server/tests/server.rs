@@ -293,24 +293,21 @@ async fn request_before_hello_and_malformed_control_stream() {
         size: recs[0].1,
     };
 
-    // 1. A request on a second stream while the hello is incomplete:
-    //    error head hello_required, the connection stays up.
+    // 1. Before the hello completes, a client has the stream budget of the
+    //    hello only: a second stream cannot be opened (QUIC stream limit 1),
+    //    so no request is read before authentication.
     {
         let (_ep, conn) = raw_connect(&h).await;
         let (mut ctrl_send, _ctrl_recv) = conn.open_bi().await.unwrap();
         let hello = acme().encode_frame().unwrap();
         ctrl_send.write_all(&hello[..3]).await.unwrap();
         tokio::time::sleep(Duration::from_millis(100)).await;
-        let (mut send, mut recv) = conn.open_bi().await.unwrap();
-        send.write_all(&req.encode_frame().unwrap()).await.unwrap();
-        send.finish().unwrap();
-        let mut dec = ResponseDecoder::new(req);
-        dec.push(&read_all(&mut recv).await).unwrap();
-        match dec.finish().unwrap() {
-            Response::Error { error, .. } => assert_eq!(error.code, ErrorCode::HelloRequired),
-            other => panic!("{other:?}"),
-        }
-        // Completing the hello then makes requests work.
+        let second = tokio::time::timeout(Duration::from_millis(300), conn.open_bi()).await;
+        assert!(
+            second.is_err(),
+            "a request stream was granted before the hello"
+        );
+        // Completing the hello then grants the tenant's streams.
         ctrl_send.write_all(&hello[3..]).await.unwrap();
         tokio::time::sleep(Duration::from_millis(100)).await;
         let (mut send, mut recv) = conn.open_bi().await.unwrap();
@@ -676,6 +673,9 @@ fn write_pem(path: &std::path::Path, label: &str, der: &[u8]) {
     std::fs::write(path, pem).unwrap();
 }
 
+/// A token from `openssl rand -hex 32`.
+const STRONG: &str = "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08";
+
 #[test]
 fn config_errors_are_clear() {
     let dir = tempfile::tempdir().unwrap();
@@ -712,13 +712,50 @@ fn config_errors_are_clear() {
     let tiny = format!("max_udp_payload = 900\n{ok}");
     let e = ServerConfig::from_toml_str(&tiny, dir.path()).unwrap_err();
     assert!(e.to_string().contains("max_udp_payload 900"), "{e}");
-    // The deploy example parses (paths do not exist here, so only syntax).
+    // The deploy example parses (paths do not exist here, so only syntax;
+    // its token file is replaced by one that exists).
+    let token_file = dir.path().join("public.token");
+    std::fs::write(&token_file, format!("{STRONG}\n")).unwrap();
     let example = std::fs::read_to_string(
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/server.toml"),
     )
-    .unwrap();
+    .unwrap()
+    .replace("/etc/planet/tokens/public", token_file.to_str().unwrap());
     let e = ServerConfig::from_toml_str(&example, dir.path()).unwrap_err();
     assert!(e.to_string().contains("/data/earth.planetdb"), "{e}");
+
+    // Outside development mode (cert and key given), weak tokens are
+    // refused at start; with a generated certificate they are accepted.
+    let (cert, key) = (dir.path().join("c.pem"), dir.path().join("k.pem"));
+    std::fs::write(&cert, "x").unwrap();
+    std::fs::write(&key, "x").unwrap();
+    let with_token = |token: &str| {
+        format!(
+            "cert = \"{}\"\nkey = \"{}\"\n{base}[[tenant]]\nname = \"p\"\ntoken = \"{token}\"\ndatabases = [\"earth\"]\n",
+            cert.display(),
+            key.display()
+        )
+    };
+    for (token, why) in [
+        ("", "empty"),
+        ("change-me", "placeholder"),
+        ("REPLACE_ME-public-tenant-token", "placeholder"),
+        ("s3cret", "6 bytes"),
+        ("aaaaaaaaaaaaaaaaaaaaaaaa", "entropy"),
+    ] {
+        let e = ServerConfig::from_toml_str(&with_token(token), dir.path()).unwrap_err();
+        assert!(e.to_string().contains(why), "{token:?}: {e}");
+        assert!(!e.to_string().contains(token) || token.is_empty() || why == "placeholder");
+    }
+    let cfg = ServerConfig::from_toml_str(&with_token(STRONG), dir.path()).unwrap();
+    assert!(!cfg.dev);
+    assert!(!format!("{cfg:?}").contains(STRONG));
+    let mut dev = cfg.clone();
+    dev.tenants[0].token = "".into();
+    assert!(dev.validate().is_err());
+    dev.dev = true;
+    dev.validate()
+        .expect("weak tokens are accepted in development mode");
 
     // A truncated database is refused naming the file.
     let trunc = dir.path().join("trunc.planetdb");
@@ -867,5 +904,169 @@ async fn tenant_bandwidth_is_paced_then_rate_limited_and_cancel_is_counted() {
         ),
         f64::from(limited)
     );
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn quic_datagrams_are_not_offered() {
+    // The protocol has no use for QUIC datagrams; when they were enabled
+    // quinn advertised `max_datagram_frame_size` and buffered about 1.25 MB
+    // of unread datagrams per connection, before authentication.
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let (_ep, conn) = raw_connect(&h).await;
+    assert_eq!(conn.max_datagram_size(), None);
+    let sent = conn.send_datagram(bytes::Bytes::from_static(&[0u8; 1000]));
+    assert!(
+        matches!(sent, Err(quinn::SendDatagramError::UnsupportedByPeer)),
+        "{sent:?}"
+    );
+    conn.close(0u32.into(), b"");
+    h.shutdown().await;
+}
+
+/// A metric's labels in the contract: (label, allowed values; empty = any).
+type ContractLabels = Vec<(String, Vec<String>)>;
+
+/// The contract lines of `deploy/metrics-contract.txt`: name -> (type,
+/// labels).
+fn contract() -> std::collections::BTreeMap<String, (String, ContractLabels)> {
+    let text = include_str!("../../deploy/metrics-contract.txt");
+    let mut out = std::collections::BTreeMap::new();
+    for line in text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+    {
+        let mut words = line.split_whitespace();
+        let name = words.next().unwrap().to_string();
+        let kind = words.next().unwrap().to_string();
+        let labels = words
+            .map(|w| match w.split_once('=') {
+                Some((k, v)) => (k.to_string(), v.split('|').map(String::from).collect()),
+                None => (w.to_string(), vec![]),
+            })
+            .collect();
+        out.insert(name, (kind, labels));
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_match_the_contract_and_the_deploy_guide() {
+    use planet_server::metrics::{HandshakeEnd, RequestOutcome, CONNECTION_OUTCOMES};
+    let contract = contract();
+    let deploy = include_str!("../../docs/DEPLOY.md");
+    let values = |name: &str, label: &str| -> Vec<String> {
+        contract[name]
+            .1
+            .iter()
+            .find(|(k, _)| k == label)
+            .map(|(_, v)| v.clone())
+            .unwrap_or_else(|| panic!("{name} has no label {label} in the contract"))
+    };
+    // Every outcome the code can emit is in the contract, and the contract
+    // lists no outcome the code cannot emit.
+    let mut code: Vec<&str> = RequestOutcome::ALL.iter().map(|o| o.as_str()).collect();
+    let mut listed = values("planet_requests_total", "outcome");
+    code.sort_unstable();
+    listed.sort_unstable();
+    assert_eq!(code, listed, "planet_requests_total outcomes");
+    let mut code = HandshakeEnd::LABELS.to_vec();
+    let mut listed = values("planet_handshakes_total", "outcome");
+    code.sort_unstable();
+    listed.sort_unstable();
+    assert_eq!(code, listed, "planet_handshakes_total outcomes");
+    let mut code = CONNECTION_OUTCOMES.to_vec();
+    let mut listed = values("planet_connections_total", "outcome");
+    code.sort_unstable();
+    listed.sort_unstable();
+    assert_eq!(code, listed, "planet_connections_total outcomes");
+
+    // A live scrape: every planet_ family is in the contract with its type,
+    // every contract planet_ metric is exported, and each one (with every
+    // outcome value) is documented in docs/DEPLOY.md's metrics section.
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, recs) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, _) = connect(&h, acme()).await.unwrap();
+    conn.fetch(1, recs[0].0, recs[0].1).await.unwrap();
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 1.0
+    })
+    .await;
+    let exported: std::collections::BTreeMap<&str, &str> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("# TYPE "))
+        .filter_map(|l| l.split_once(' '))
+        .filter(|(n, _)| n.starts_with("planet_"))
+        .collect();
+    for (name, kind) in &exported {
+        let (ckind, _) = contract
+            .get(*name)
+            .unwrap_or_else(|| panic!("{name} is exported but not in metrics-contract.txt"));
+        assert_eq!(ckind, kind, "{name}");
+    }
+    for (name, (_, labels)) in contract.iter().filter(|(n, _)| n.starts_with("planet_")) {
+        assert!(
+            exported.contains_key(name.as_str()),
+            "{name} is in the contract but not exported"
+        );
+        assert!(
+            deploy.contains(name.as_str()),
+            "{name} is not documented in docs/DEPLOY.md"
+        );
+        for (label, vals) in labels {
+            for v in vals {
+                assert!(
+                    deploy.contains(&format!("`{v}`")),
+                    "{name}{{{label}=\"{v}\"}} is not documented in docs/DEPLOY.md"
+                );
+            }
+        }
+    }
+    conn.close();
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn protocol_document_claims_hold() {
+    // docs/PROTOCOL.md: records lie in [64, header_offset); the superblock
+    // and the header are `out_of_range`; an undecodable request stream is
+    // answered with an error head of id 0.
+    let doc = include_str!("../../docs/PROTOCOL.md");
+    assert!(doc.contains("`[64, header_offset)`"));
+    assert!(doc.contains("**id 0**"));
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = two_tenant_config(dir.path());
+    let file = file_bytes(&dir.path().join("earth.planetdb"));
+    let header_offset = u64::from_le_bytes(file[16..24].try_into().unwrap());
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    assert_eq!(welcome.file_size, file.len() as u64);
+    for (id, offset, size) in [(1, 0, 64), (2, 0, 8), (3, header_offset, 8)] {
+        assert_eq!(
+            server_code(conn.fetch(id, offset, size).await),
+            ErrorCode::OutOfRange,
+            "{offset}+{size}"
+        );
+    }
+    let (mut send, mut recv) = conn.quinn().open_bi().await.unwrap();
+    send.write_all(&[3, 0, 0, 0, 0x10, 1, 2]).await.unwrap();
+    send.finish().unwrap();
+    let reply = read_all(&mut recv).await;
+    let mut dec = FrameDecoder::new();
+    dec.push(&reply);
+    match dec.next_frame() {
+        Ok(Some(Message::ResponseHead(head))) => {
+            assert_eq!(head.id, 0);
+            match head.status {
+                planet_protocol::Status::Error(e) => assert_eq!(e.code, ErrorCode::Malformed),
+                other => panic!("{other:?}"),
+            }
+        }
+        other => panic!("{other:?}"),
+    }
+    conn.close();
     h.shutdown().await;
 }

@@ -112,21 +112,19 @@ pub fn two_tenant_config(dir: &Path) -> (ServerConfig, Vec<(u64, u32)>) {
     ];
     cfg.tenants = vec![
         TenantConfig {
-            name: "acme".into(),
-            token: "s3cret".into(),
-            databases: vec!["earth".into()],
             max_in_flight: 4,
-            max_bytes_per_second: 0,
+            ..TenantConfig::new("acme", "s3cret", vec!["earth".into()])
         },
         TenantConfig {
-            name: "other".into(),
-            token: "t0ken".into(),
-            databases: vec!["mars".into()],
             max_in_flight: 4,
-            max_bytes_per_second: 0,
+            ..TenantConfig::new("other", "t0ken", vec!["mars".into()])
         },
     ];
     cfg.shutdown_grace = Duration::from_secs(2);
+    // Every test client comes from 127.0.0.1: the per-address limits are
+    // tested on their own (resources.rs), with clients on 127.0.0.2.
+    cfg.max_connections_per_address = 100_000;
+    cfg.max_failed_hellos_per_minute = 0;
     cfg.validate().expect("valid");
     (cfg, recs)
 }
@@ -149,6 +147,23 @@ pub async fn connect_opts(
     opts: &ConnectOptions,
 ) -> Result<(Connection, Welcome), NetError> {
     Connection::connect_with(h.local_addr(), "localhost", tls_for(h), hello, opts).await
+}
+
+/// A quinn client endpoint bound to `ip` (e.g. 127.0.0.2: Linux routes the
+/// whole 127/8 to loopback), trusting the server `h`, with `transport`.
+pub fn endpoint_on(
+    h: &ServerHandle,
+    ip: &str,
+    transport: Option<quinn::TransportConfig>,
+) -> quinn::Endpoint {
+    let mut ep = quinn::Endpoint::client(format!("{ip}:0").parse().unwrap()).unwrap();
+    let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls_for(h)).unwrap();
+    let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
+    if let Some(t) = transport {
+        cfg.transport_config(Arc::new(t));
+    }
+    ep.set_default_client_config(cfg);
+    ep
 }
 
 /// A raw quinn connection (no protocol handshake).
