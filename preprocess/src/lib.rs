@@ -22,7 +22,9 @@ pub mod procedural;
 pub mod source;
 pub mod voidfill;
 
-pub use build::{build, BuildOptions, BuildStats, GridSource};
+pub use build::{
+    build, BuildOptions, BuildStats, CodecOptions, ColourQuality, ElevationChoice, GridSource,
+};
 pub use error::{BuildError, DbError, GeoError};
 pub use procedural::{
     build_procedural, check_procedural_options, default_procedural_options, DetailRegion,
@@ -43,6 +45,8 @@ pub struct RasterOptions {
     pub threads: Option<usize>,
     /// Hide progress bars.
     pub quiet: bool,
+    /// Record codecs.
+    pub codecs: CodecOptions,
 }
 
 impl Default for RasterOptions {
@@ -52,6 +56,7 @@ impl Default for RasterOptions {
             max_memory_mb: 1024,
             threads: None,
             quiet: true,
+            codecs: CodecOptions::default(),
         }
     }
 }
@@ -101,6 +106,7 @@ pub fn build_rasters(
             quiet: opts.quiet,
             // The raster caches get half of the bound; the grids the rest.
             grid_memory: Some(opts.max_memory_mb.max(8) << 19),
+            codecs: opts.codecs,
         },
     )
 }

@@ -1,7 +1,7 @@
 //! Procedural planet: build, verify, corruption detection, exact samples.
 
 use planet_core::format::{parse_record, ChildRef, DbFile};
-use planet_core::{codec, lod, BlockId, Edge, Face};
+use planet_core::{lod, BlockId, Edge, Face};
 use planet_preprocess::db::{verify, Sampler};
 use planet_preprocess::plan::Plan;
 use planet_preprocess::{
@@ -13,11 +13,17 @@ use std::fs::OpenOptions;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
 
+/// A small planet with exact codecs (tests compare samples with the
+/// generator's).
 fn small(levels: u8, colour: bool) -> ProceduralOptions {
     ProceduralOptions {
         levels,
         colour,
         seed: 7,
+        codecs: planet_preprocess::CodecOptions {
+            colour: planet_preprocess::ColourQuality::Lossless,
+            ..Default::default()
+        },
         ..default_procedural_options()
     }
 }
@@ -139,8 +145,10 @@ fn fnv1a(bytes: &[u8]) -> u64 {
 }
 
 /// A uniform planet is byte-identical to the one the generator built before
-/// detail regions existed (FNV-1a of the file the previous release wrote for
-/// seed 1, 2 levels, one thread).
+/// detail regions existed (FNV-1a of the file for seed 1, 2 levels, one
+/// thread). Format v2 with the legacy codecs writes the same records as v1
+/// (v1's file was 2 594 635 bytes): only the header grows, by its 20 codec
+/// bytes; the hash pins the v2 file.
 #[test]
 fn uniform_planet_is_unchanged() {
     let dir = tempfile::tempdir().unwrap();
@@ -148,10 +156,14 @@ fn uniform_planet_is_unchanged() {
     let mut o = default_procedural_options();
     o.levels = 2;
     o.threads = Some(1);
+    o.codecs = planet_preprocess::CodecOptions {
+        elevation: planet_preprocess::ElevationChoice::Legacy,
+        colour: planet_preprocess::ColourQuality::LosslessLegacy,
+    };
     build_procedural(&o, &path).unwrap();
     let bytes = std::fs::read(&path).unwrap();
-    assert_eq!(bytes.len(), 2_594_635);
-    assert_eq!(fnv1a(&bytes), 0x6dda_e49e_f422_ba2a);
+    assert_eq!(bytes.len(), 2_594_635 + 20);
+    assert_eq!(fnv1a(&bytes), 0x056a_914d_2d27_c766, "{:#x}", fnv1a(&bytes));
 }
 
 /// The samples along the edge `e` of a full `(W+1)²` grid, in edge order.
@@ -246,7 +258,7 @@ fn colour_blocks(path: &Path) -> HashMap<BlockId, (ChildRef, Vec<lod::Rgb>)> {
         while let Some((b, r, lod1)) = stack.pop() {
             let bytes = db.read_record(&r).unwrap();
             let rec = parse_record(&bytes, None).unwrap();
-            let full = codec::decode_colour(&rec.raw_payload().unwrap(), &lod1, w).unwrap();
+            let full = rec.decode_colour(&ct.codec, &lod1, w).unwrap();
             for (k, c) in rec.header.children.iter().enumerate() {
                 stack.push((b.child(k), *c, lod::split_colour(&full, w, k)));
             }
@@ -351,4 +363,44 @@ fn detail_region_colour_follows_the_elevation() {
 
 fn plan_meets(b: &BlockId, cap: &planet_preprocess::plan::Cap) -> bool {
     planet_preprocess::plan::block_meets_cap(*b, cap)
+}
+
+/// Every codec choice: verify against the generator holds the elevation
+/// bound on every leaf sample (exact for 0 m and legacy) and the colour
+/// PSNR target (lossless codecs exact), and the legacy codecs are what the
+/// header says.
+#[test]
+fn codecs_meet_their_bounds_against_the_source() {
+    use planet_preprocess::{CodecOptions, ColourQuality, ElevationChoice};
+    let dir = tempfile::tempdir().unwrap();
+    for (elevation, colour) in [
+        (ElevationChoice::Legacy, ColourQuality::LosslessLegacy),
+        (ElevationChoice::MaxError(0.0), ColourQuality::Lossless),
+        (ElevationChoice::MaxError(3.0), ColourQuality::Psnr(36.0)),
+        (ElevationChoice::MaxError(0.0), ColourQuality::Psnr(45.0)),
+    ] {
+        let path = dir.path().join("c.db");
+        let mut o = small(2, true);
+        o.codecs = CodecOptions { elevation, colour };
+        build_procedural(&o, &path).unwrap();
+        let src = Procedural::new(&o);
+        let rep = planet_preprocess::db::verify_against(&path, Some(&src)).unwrap();
+        let bound = match elevation {
+            ElevationChoice::Legacy => 0.0,
+            ElevationChoice::MaxError(m) => m,
+        };
+        assert_eq!(rep.elevation_bound_m, Some(bound));
+        assert!(rep.elevation_max_error_m.unwrap() <= bound);
+        let psnr = rep.colour_psnr.unwrap();
+        match colour {
+            ColourQuality::Psnr(t) => assert!(psnr >= t as f64, "{psnr} < {t}"),
+            _ => assert_eq!(psnr, f64::INFINITY),
+        }
+        let db = DbFile::open(&path).unwrap();
+        let legacy = matches!(elevation, ElevationChoice::Legacy);
+        assert_eq!(
+            db.header.elevation.codec == planet_core::codec::ElevationCodec::Legacy,
+            legacy
+        );
+    }
 }
