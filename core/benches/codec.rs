@@ -2,6 +2,11 @@
 //! `cargo bench -p planet-core --bench codec`. Throughput is in samples
 //! (new elevation samples or LOD 0 texels of a record) per second, one core.
 //!
+//! Before criterion's wall-clock groups it prints a table (and a JSON line)
+//! of samples per *CPU*-second of the bench thread (from
+//! `/proc/thread-self/schedstat`), which stays meaningful on a shared,
+//! loaded machine where wall-clock rates are not.
+//!
 //! Inputs are made here: 32 elevation blocks of W = 64 (the builder's
 //! width) of fractal terrain (value-noise fBm, 3 km relief, about SRTM-like
 //! roughness at 90 m spacing: residuals of tens of metres), and 32 colour
@@ -87,7 +92,116 @@ fn colour_blocks() -> Vec<Vec<Rgb>> {
         .collect()
 }
 
+/// CPU time of this thread in ns (Linux; `None` elsewhere).
+fn cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// Samples per CPU-second of `f` (which handles `n` samples), run for about
+/// one CPU-second.
+fn per_cpu_second(n: u64, mut f: impl FnMut()) -> Option<f64> {
+    f();
+    let start = cpu_ns()?;
+    let mut runs = 0u64;
+    while cpu_ns()? - start < 1_000_000_000 {
+        f();
+        runs += 1;
+    }
+    Some((runs * n) as f64 / ((cpu_ns()? - start) as f64 * 1e-9))
+}
+
+/// The CPU-time table: encode and decode rates of every codec.
+fn cpu_table() {
+    let eblocks = elevation_blocks();
+    let side = EW + 1;
+    let en = (BLOCKS * lod::elevation_new_samples(EW)) as u64;
+    let mut rows = Vec::new();
+    for (name, codec) in [
+        ("elevation legacy", ElevationCodec::Legacy),
+        (
+            "elevation exact",
+            ElevationCodec::Quantised { max_error: 0 },
+        ),
+        ("elevation 1 m", ElevationCodec::Quantised { max_error: 1 }),
+    ] {
+        let payloads: Vec<_> = eblocks.iter().map(|b| codec.encode(b, EW)).collect();
+        let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
+        let enc = per_cpu_second(en, || {
+            for b in &eblocks {
+                black_box(codec.encode(black_box(b), EW));
+            }
+        });
+        let mut grid = vec![0i16; side * side];
+        let dec = per_cpu_second(en, || {
+            for (p, b) in payloads.iter().zip(&eblocks) {
+                lod::elevation_place_first_lod(&lod::elevation_first_lod(b, EW), EW, &mut grid);
+                codec
+                    .decode(&p.bytes, p.raw_len as usize, EW, &mut grid)
+                    .expect("own payload");
+                black_box(&grid);
+            }
+        });
+        rows.push((name, bytes as f64 / en as f64, enc, dec));
+    }
+    let cblocks = colour_blocks();
+    let lod1s: Vec<Vec<Rgb>> = cblocks.iter().map(|b| lod::colour_filter(b, CW)).collect();
+    let cn = (BLOCKS * CW * CW) as u64;
+    for (name, codec) in [
+        ("colour legacy", ColourCodec::Legacy),
+        ("colour lossless", ColourCodec::Lossless),
+        (
+            "colour 42 dB",
+            ColourCodec::Haar(HaarParams::for_psnr(42.0)),
+        ),
+    ] {
+        let payloads: Vec<_> = cblocks
+            .iter()
+            .zip(&lod1s)
+            .map(|(b, l)| codec.encode(b, l, CW, 0).0)
+            .collect();
+        let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
+        let enc = per_cpu_second(cn, || {
+            for (b, l) in cblocks.iter().zip(&lod1s) {
+                black_box(codec.encode(black_box(b), l, CW, 0));
+            }
+        });
+        let dec = per_cpu_second(cn, || {
+            for (p, l) in payloads.iter().zip(&lod1s) {
+                black_box(
+                    codec
+                        .decode(&p.bytes, p.raw_len as usize, l, CW)
+                        .expect("own payload"),
+                );
+            }
+        });
+        rows.push((name, bytes as f64 / cn as f64, enc, dec));
+    }
+    let m = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{:.1}", v / 1e6));
+    println!("| codec | bytes per sample | encode M samples/CPU-s | decode M samples/CPU-s |");
+    println!("|---|---|---|---|");
+    for (name, b, e, d) in &rows {
+        println!("| {name} | {b:.4} | {} | {} |", m(*e), m(*d));
+    }
+    let json: Vec<String> = rows
+        .iter()
+        .map(|(name, b, e, d)| {
+            format!(
+                "{{\"codec\":\"{name}\",\"bytes_per_sample\":{b:.5},\"encode_per_cpu_s\":{},\"decode_per_cpu_s\":{}}}",
+                e.map_or("null".into(), |v| format!("{v:.0}")),
+                d.map_or("null".into(), |v| format!("{v:.0}"))
+            )
+        })
+        .collect();
+    println!("[{}]", json.join(","));
+}
+
 fn elevation(c: &mut Criterion) {
+    cpu_table();
     let blocks = elevation_blocks();
     let side = EW + 1;
     let n = (BLOCKS * lod::elevation_new_samples(EW)) as u64;

@@ -125,7 +125,7 @@ fn for_each_new(
     mut f: impl FnMut(usize, usize) -> Result<(), CodecError>,
 ) -> Result<(), CodecError> {
     for j in 0..side {
-        let first = if j % 2 == 0 { 1 } else { 0 };
+        let first = if j.is_multiple_of(2) { 1 } else { 0 };
         for i in (first..side).step_by(2) {
             f(i, j)?;
         }
@@ -231,17 +231,17 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
         (8.0 * (1.0 + mean).log2()).round().clamp(0.0, 255.0) as u8
     });
     let m: [_; CONTEXTS] = std::array::from_fn(|c| encoder_model(scales[c]));
+    let uniform: [SmallUniformModel; 9] =
+        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
     let mut coder = DefaultAnsCoder::new();
     let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
     for &(z, c) in syms.iter().rev() {
         let (b, extra, bits) = bucket(z);
         for (shift, width) in chunks(extra).rev() {
             let v = (bits >> shift) & ((1 << width) - 1);
-            if width > 0 {
-                coder
-                    .encode_symbol(v as usize, SmallUniformModel::new(1 << width))
-                    .unwrap_or_else(fail);
-            }
+            coder
+                .encode_symbol(v as usize, uniform[width as usize])
+                .unwrap_or_else(fail);
         }
         coder.encode_symbol(b, m[c as usize]).unwrap_or_else(fail);
     }
@@ -266,7 +266,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
             expected: side * side,
         });
     }
-    if raw.len() < CONTEXTS || (raw.len() - CONTEXTS) % 4 != 0 {
+    if raw.len() < CONTEXTS || !(raw.len() - CONTEXTS).is_multiple_of(4) {
         return Err(CodecError::Length {
             got: raw.len(),
             expected: CONTEXTS,
@@ -288,24 +288,26 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
             idx[j * side + i] = index(grid[j * side + i], k, s);
         }
     }
-    let rans = |e| CodecError::Rans(format!("{e:?}"));
+    // Uniform models of 1..=8 bits, built once per record.
+    let uniform: [SmallUniformModel; 9] =
+        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
+    let mut next = |c: usize| -> Result<u32, CodecError> {
+        let rans = |e| CodecError::Rans(format!("{e:?}"));
+        let b = coder.decode_symbol(m[c].as_view()).map_err(rans)?;
+        if b < DIRECT as usize {
+            return Ok(b as u32);
+        }
+        let extra = (b - DIRECT as usize + 4) as u32;
+        let mut bits = 0u32;
+        for (shift, width) in chunks(extra) {
+            let v = coder.decode_symbol(uniform[width as usize]).map_err(rans)?;
+            bits |= (v as u32) << shift;
+        }
+        Ok((1u32 << extra) | bits)
+    };
     for_each_new(side, |i, j| {
         let (p, c) = predict(&idx, side, i, j);
-        let b = coder.decode_symbol(m[c].as_view()).map_err(rans)?;
-        let z = if b < DIRECT as usize {
-            b as u32
-        } else {
-            let extra = (b - DIRECT as usize + 4) as u32;
-            let mut bits = 0u32;
-            for (shift, width) in chunks(extra) {
-                let v = coder
-                    .decode_symbol(SmallUniformModel::new(1 << width))
-                    .map_err(rans)?;
-                bits |= (v as u32) << shift;
-            }
-            (1u32 << extra) | bits
-        };
-        let q = p.wrapping_add(unzigzag32(z)).clamp(lo, hi);
+        let q = p.wrapping_add(unzigzag32(next(c)?)).clamp(lo, hi);
         idx[j * side + i] = q;
         grid[j * side + i] = value(q, s);
         Ok(())

@@ -453,7 +453,7 @@ impl<'a> SymbolReader<'a> {
             });
         }
         let (head, tail) = raw.split_at(count);
-        if tail.len() % 4 != 0 {
+        if !tail.len().is_multiple_of(4) {
             return Err(CodecError::Escapes(format!(
                 "tail of {} bytes is not whole u32 values",
                 tail.len()
