@@ -404,3 +404,54 @@ fn codecs_meet_their_bounds_against_the_source() {
         );
     }
 }
+
+/// The geometric error of every elevation reference includes the codec's
+/// max error: with `--max-error 3` each reference's error is the exact
+/// build's plus 3 m (added at the leaves, carried up), and the bounds widen
+/// by 3 m.
+#[test]
+fn child_errors_include_the_codec_error() {
+    use planet_preprocess::{CodecOptions, ElevationChoice};
+    let dir = tempfile::tempdir().unwrap();
+    // Per build: every reference (block, error, min, max), sorted by block.
+    let refs = |m: f64| -> Vec<(BlockId, f32, f32, f32)> {
+        let path = dir.path().join(format!("e{m}.db"));
+        let mut o = small(2, false);
+        o.codecs = CodecOptions {
+            elevation: ElevationChoice::MaxError(m),
+            ..Default::default()
+        };
+        build_procedural(&o, &path).unwrap();
+        let db = DbFile::open(&path).unwrap();
+        let mut all = Vec::new();
+        let mut stack: Vec<(BlockId, ChildRef)> = Face::ALL
+            .iter()
+            .zip(db.header.elevation.root_records)
+            .map(|(f, r)| (BlockId::root(*f), r))
+            .collect();
+        while let Some((b, r)) = stack.pop() {
+            all.push((b, r.error, r.min_elevation, r.max_elevation));
+            let bytes = db.read_record(&r).unwrap();
+            let rec = parse_record(&bytes, None).unwrap();
+            for (k, c) in rec.header.children.iter().enumerate() {
+                stack.push((b.child(k), *c));
+            }
+        }
+        all.sort_by_key(|r| r.0);
+        all
+    };
+    let (exact, bounded) = (refs(0.0), refs(3.0));
+    assert_eq!(exact.len(), 6 * 21);
+    assert_eq!(exact.len(), bounded.len());
+    for (a, b) in exact.iter().zip(&bounded) {
+        assert_eq!(a.0, b.0);
+        assert!(
+            (b.1 - (a.1 + 3.0)).abs() < 1e-3,
+            "{:?}: {} vs {} + 3",
+            a.0,
+            b.1,
+            a.1
+        );
+        assert!((b.2 - (a.2 - 3.0)).abs() < 1e-3 && (b.3 - (a.3 + 3.0)).abs() < 1e-3);
+    }
+}
