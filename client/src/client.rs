@@ -36,6 +36,7 @@ use crate::tree::{
 };
 use crate::view_prediction::ViewPredictor;
 use crate::visibility::{Camera, View};
+use planet_core::codec::TreeCodec;
 use planet_core::format::{ChildRef, Header, Tree};
 use planet_core::BlockId;
 use std::sync::mpsc::{channel, Receiver, Sender};
@@ -188,6 +189,7 @@ struct Job {
     block: BlockId,
     forced: bool,
     width: usize,
+    codec: TreeCodec,
     bytes: Vec<u8>,
     first: FirstLod,
 }
@@ -201,7 +203,9 @@ struct Done {
 }
 
 fn run_job(job: Job) -> Done {
-    let result = decode_record(job.tree, job.block, job.width, &job.bytes, job.first);
+    let result = decode_record(
+        job.tree, job.block, job.width, job.codec, &job.bytes, job.first,
+    );
     Done {
         tree: job.tree,
         block: job.block,
@@ -449,7 +453,10 @@ impl Client {
             }
         };
         self.since_last.bytes_received += bytes.len() as u64;
-        let width = self.tree.tree(req.tree).map_or(0, |t| t.width);
+        let Some((width, codec)) = self.tree.tree(req.tree).map(|t| (t.width, t.codec)) else {
+            self.since_last.bytes_dropped += bytes.len() as u64;
+            return;
+        };
         let Some(first) = self.tree.first_lod(req.tree, &req.block) else {
             self.since_last.bytes_dropped += bytes.len() as u64;
             return;
@@ -459,6 +466,7 @@ impl Client {
             block: req.block,
             forced: req.forced,
             width,
+            codec,
             bytes,
             first,
         };

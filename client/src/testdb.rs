@@ -9,12 +9,17 @@
 //! can corrupt chosen records once.
 
 use crate::client::{FrameOutput, Outgoing};
-use planet_core::codec;
+use planet_core::codec::{ColourCodec, ElevationCodec};
 use planet_core::cube::{sample_coord, FaceCoord};
 use planet_core::format::{encode_record, ChildRef, Header, Tree, TreeInfo, SUPERBLOCK_LEN};
 use planet_core::lod::{self, Rgb};
 use planet_core::{BlockId, Datum, Face};
 use std::collections::{HashMap, HashSet};
+
+/// The test databases are exact (tests compare decoded samples with the
+/// analytic ones): exact quantised elevation, lossless colour.
+const ELEVATION_CODEC: ElevationCodec = ElevationCodec::Quantised { max_error: 0 };
+const COLOUR_CODEC: ColourCodec = ColourCodec::Lossless;
 
 /// Parameters of a synthetic database.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -139,7 +144,7 @@ impl Builder {
                 kids.push(r);
             }
         }
-        let rec = encode_record(Tree::Elevation, b, &kids, &codec::encode_elevation(&g, w));
+        let rec = encode_record(Tree::Elevation, b, &kids, &ELEVATION_CODEC.encode(&g, w));
         let (offset, size) = self.append(rec);
         let r = ChildRef {
             offset,
@@ -193,7 +198,7 @@ impl Builder {
             Tree::Colour,
             b,
             &kids,
-            &codec::encode_colour(&full, &lod1, w),
+            &COLOUR_CODEC.encode(&full, &lod1, w, 0).0,
         );
         let (offset, size) = self.append(rec);
         let r = ChildRef {
@@ -237,6 +242,7 @@ impl TestDb {
             }
             TreeInfo {
                 block_width: cw as u16,
+                codec: COLOUR_CODEC,
                 max_level: cl,
                 root_records: croots,
                 root_first_lods: cfirsts,
@@ -253,6 +259,7 @@ impl TestDb {
             max_elevation: hi,
             elevation: TreeInfo {
                 block_width: w as u16,
+                codec: ELEVATION_CODEC,
                 max_level: cfg.elevation_max_level,
                 root_records: roots,
                 root_first_lods: firsts,

@@ -41,7 +41,7 @@
 //!   colour node has an elevation node with the same id.
 
 use crate::visibility::BlockBounds;
-use planet_core::codec::{self, CodecError};
+use planet_core::codec::{CodecError, TreeCodec};
 use planet_core::format::{self, ChildRef, FormatError, Header, Tree};
 use planet_core::lod::{self, Rgb};
 use planet_core::{BlockId, Edge, Face};
@@ -262,6 +262,7 @@ pub fn decode_record(
     tree: Tree,
     block: BlockId,
     width: usize,
+    codec: TreeCodec,
     bytes: &[u8],
     first: FirstLod,
 ) -> Result<Decoded, RefineError> {
@@ -278,22 +279,22 @@ pub fn decode_record(
             got: rec.header.block,
         });
     }
-    let raw = rec.raw_payload()?;
-    let samples = match first {
-        FirstLod::Elevation(mut grid) => {
+    let samples = match (first, codec) {
+        (FirstLod::Elevation(mut grid), TreeCodec::Elevation(c)) => {
             if grid.len() != (width + 1) * (width + 1) {
                 return Err(RefineError::Snapshot);
             }
-            codec::decode_elevation(&raw, width, &mut grid)?;
+            rec.decode_elevation(&c, width, &mut grid)?;
             Samples::Elevation(grid)
         }
-        FirstLod::Colour(lod1) => {
-            let full = codec::decode_colour(&raw, &lod1, width)?;
+        (FirstLod::Colour(lod1), TreeCodec::Colour(c)) => {
+            let full = rec.decode_colour(&c, &lod1, width)?;
             Samples::Colour {
                 lod1,
                 full: Some(full),
             }
         }
+        _ => return Err(RefineError::Snapshot),
     };
     if matches!(
         (&samples, tree),
@@ -316,6 +317,8 @@ pub struct LinkedTree {
     pub kind: Tree,
     /// Block width `W`.
     pub width: usize,
+    /// The codec of the tree's records (from the header).
+    pub codec: TreeCodec,
     /// Deepest level in the database.
     pub max_level: u8,
     nodes: FastMap<BlockId, Node>,
@@ -489,6 +492,7 @@ impl PartialTree {
         let mut elevation = LinkedTree {
             kind: Tree::Elevation,
             width: ew,
+            codec: TreeCodec::Elevation(header.elevation.codec),
             max_level: header.elevation.max_level,
             nodes: FastMap::default(),
         };
@@ -526,6 +530,7 @@ impl PartialTree {
                 let mut t = LinkedTree {
                     kind: Tree::Colour,
                     width: cw,
+                    codec: TreeCodec::Colour(c.codec),
                     max_level: c.max_level,
                     nodes: FastMap::default(),
                 };

@@ -1,6 +1,6 @@
 //! Writes valid records and headers as seeds for the fuzz corpora:
 //! `cargo run -p planet-core --example fuzz_seeds -- fuzz/corpus`.
-use planet_core::codec;
+use planet_core::codec::{colour::HaarParams, ColourCodec, ElevationCodec};
 use planet_core::format::{encode_record, ChildRef, Header, Tree, TreeInfo};
 use planet_core::lod::colour_filter;
 use planet_core::{BlockId, Datum, Face};
@@ -32,27 +32,41 @@ fn main() -> std::io::Result<()> {
         Tree::Elevation,
         block,
         &[kid; 4],
-        &codec::encode_elevation(&grid, w),
+        &ElevationCodec::Legacy.encode(&grid, w),
     );
     std::fs::write(rec_dir.join("seed-elevation"), elev)?;
     let leaf = encode_record(
         Tree::Elevation,
         block,
         &[],
-        &codec::encode_elevation(&grid, w),
+        &ElevationCodec::Legacy.encode(&grid, w),
     );
     std::fs::write(rec_dir.join("seed-elevation-leaf"), leaf)?;
+    for k in [0u16, 3] {
+        let rec = encode_record(
+            Tree::Elevation,
+            block,
+            &[],
+            &ElevationCodec::Quantised { max_error: k }.encode(&grid, w),
+        );
+        std::fs::write(rec_dir.join(format!("seed-elevation-quantised-{k}")), rec)?;
+    }
     let cw = 128;
     let full: Vec<[u8; 3]> = (0..cw * cw)
         .map(|k| [(k % 251) as u8, (k % 13) as u8, 200])
         .collect();
-    let colour = encode_record(
-        Tree::Colour,
-        block,
-        &[],
-        &codec::encode_colour(&full, &colour_filter(&full, cw), cw),
-    );
-    std::fs::write(rec_dir.join("seed-colour"), colour)?;
+    let lod1 = colour_filter(&full, cw);
+    for (name, c) in [
+        ("seed-colour", ColourCodec::Legacy),
+        ("seed-colour-lossless", ColourCodec::Lossless),
+        (
+            "seed-colour-haar",
+            ColourCodec::Haar(HaarParams::for_psnr(42.0)),
+        ),
+    ] {
+        let rec = encode_record(Tree::Colour, block, &[], &c.encode(&full, &lod1, cw, 1).0);
+        std::fs::write(rec_dir.join(name), rec)?;
+    }
     let eh = (w / 2 + 1) * (w / 2 + 1);
     for with_colour in [false, true] {
         let h = Header {
@@ -63,12 +77,14 @@ fn main() -> std::io::Result<()> {
             max_elevation: 400.0,
             elevation: TreeInfo {
                 block_width: w as u16,
+                codec: ElevationCodec::Quantised { max_error: 1 },
                 max_level: 3,
                 root_records: [kid; 6],
                 root_first_lods: std::array::from_fn(|_| vec![7i16; eh]),
             },
             colour: with_colour.then(|| TreeInfo {
                 block_width: cw as u16,
+                codec: ColourCodec::Haar(HaarParams::for_psnr(42.0)),
                 max_level: 2,
                 root_records: [kid; 6],
                 root_first_lods: std::array::from_fn(|_| vec![[1u8, 2, 3]; (cw / 2) * (cw / 2)]),

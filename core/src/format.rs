@@ -16,7 +16,7 @@
 //! name and renamed, so a half-written file never looks valid.
 
 use crate::block::{BlockId, MAX_LEVEL};
-use crate::codec::{self, CodecError};
+use crate::codec::{self, CodecError, ColourCodec, ElevationCodec, Payload};
 use crate::cube::Face;
 use crate::datum::Datum;
 use crate::lod::Rgb;
@@ -34,8 +34,8 @@ pub const SUPERBLOCK_LEN: usize = 64;
 pub const HEADER_MAGIC: [u8; 4] = *b"PHDR";
 /// Magic at the start of every LOD record.
 pub const RECORD_MAGIC: [u8; 4] = *b"PLOD";
-/// Format version written and accepted.
-pub const FORMAT_VERSION: u32 = 1;
+/// Format version written and accepted (2: per-tree codecs in the header).
+pub const FORMAT_VERSION: u32 = 2;
 /// Fixed part of a record before the child references.
 pub const RECORD_FIXED_LEN: usize = 24;
 /// Bytes of one child reference.
@@ -78,7 +78,10 @@ pub enum FormatError {
     #[error("checksum mismatch in {0}")]
     Checksum(&'static str),
     /// The format version is not supported.
-    #[error("unsupported format version {0} (this build reads {FORMAT_VERSION})")]
+    #[error(
+        "unsupported database format version {0}: this build reads version {FORMAT_VERSION} \
+         only; rebuild the database with this planet-build"
+    )]
     Version(u32),
     /// A field holds an impossible value.
     #[error("invalid field: {0}")]
@@ -261,9 +264,11 @@ impl Superblock {
 
 /// One tree's parameters and roots in the header.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TreeInfo<T> {
+pub struct TreeInfo<T, C> {
     /// Block width `W` (samples per side without the odd edge sample).
     pub block_width: u16,
+    /// The codec of the tree's record payloads and its parameters.
+    pub codec: C,
     /// The deepest level of any block.
     pub max_level: u8,
     /// Per face: the root's LOD 0 record.
@@ -287,14 +292,14 @@ pub struct Header {
     /// Maximum elevation of the whole database, metres.
     pub max_elevation: f32,
     /// The elevation tree.
-    pub elevation: TreeInfo<i16>,
+    pub elevation: TreeInfo<i16, ElevationCodec>,
     /// The colour tree, if the database has colour.
-    pub colour: Option<TreeInfo<Rgb>>,
+    pub colour: Option<TreeInfo<Rgb, ColourCodec>>,
     /// Free text: what the database was built from.
     pub description: String,
 }
 
-const HEADER_FIXED_LEN: usize = 60;
+const HEADER_FIXED_LEN: usize = 80;
 
 impl Header {
     /// Elevation in metres of a stored sample.
@@ -338,6 +343,18 @@ impl Header {
         let desc = &desc[..desc.len().min(u16::MAX as usize)];
         b.extend_from_slice(&(desc.len() as u16).to_le_bytes());
         b.extend_from_slice(&[0u8; 2]);
+        b.push(self.elevation.codec.id());
+        b.push(0);
+        b.extend_from_slice(&self.elevation.codec.param().to_le_bytes());
+        let ccodec = self
+            .colour
+            .as_ref()
+            .map_or(ColourCodec::Legacy, |c| c.codec);
+        b.push(ccodec.id());
+        b.extend_from_slice(&[0u8; 3]);
+        for v in ccodec.params() {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
         debug_assert_eq!(b.len(), HEADER_FIXED_LEN);
         for f in 0..6 {
             self.elevation.root_records[f].write(&mut b);
@@ -413,6 +430,14 @@ impl Header {
         let cw = u16_at(b, 52);
         let cl = b[54];
         let desc_len = u16_at(b, 56) as usize;
+        if b[61] != 0 || b[65..68] != [0, 0, 0] {
+            return Err(FormatError::Field("reserved codec bytes".into()));
+        }
+        let ecodec = ElevationCodec::from_id(b[60], u16_at(b, 62))?;
+        let ccodec = ColourCodec::from_id(b[64], [f32_at(b, 68), f32_at(b, 72), f32_at(b, 76)])?;
+        if has_colour == 0 && ccodec != ColourCodec::Legacy {
+            return Err(FormatError::Field("colour codec without colour".into()));
+        }
         let check_width = |w: u16, what: &str| {
             if w < 2 || !w.is_multiple_of(2) || w > 4096 {
                 Err(FormatError::Field(format!("{what} block width {w}")))
@@ -439,6 +464,7 @@ impl Header {
         let ehalf = ew as usize / 2 + 1;
         let mut elevation = TreeInfo {
             block_width: ew,
+            codec: ecodec,
             max_level: el,
             root_records: [ChildRef::default(); 6],
             root_first_lods: Default::default(),
@@ -456,6 +482,7 @@ impl Header {
             let chalf = cw as usize / 2;
             let mut t = TreeInfo {
                 block_width: cw,
+                codec: ccodec,
                 max_level: cl,
                 root_records: [ChildRef::default(); 6],
                 root_first_lods: Default::default(),
@@ -497,7 +524,8 @@ pub struct RecordHeader {
     pub tree: Tree,
     /// The block whose LOD 0 this record holds.
     pub block: BlockId,
-    /// Length of the payload after lz4 decompression.
+    /// Length of the payload after the entropy layer (lz4 or zstd), before
+    /// the sample codec; checked against the codec's limit before decoding.
     pub raw_len: u32,
     /// The children's records (empty for a leaf).
     pub children: Vec<ChildRef>,
@@ -508,28 +536,43 @@ pub struct RecordHeader {
 pub struct Record<'a> {
     /// The record's header fields.
     pub header: RecordHeader,
-    /// The lz4-compressed payload.
+    /// The entropy-coded payload.
     pub payload: &'a [u8],
 }
 
 impl Record<'_> {
-    /// Decompress the payload.
-    pub fn raw_payload(&self) -> Result<Vec<u8>, FormatError> {
-        Ok(codec::decompress(
-            self.payload,
-            self.header.raw_len as usize,
-        )?)
+    /// Decode an elevation payload into a `(w+1)²` grid whose LOD 1
+    /// positions hold the parent's decoded samples.
+    pub fn decode_elevation(
+        &self,
+        codec: &ElevationCodec,
+        w: usize,
+        grid: &mut [i16],
+    ) -> Result<(), FormatError> {
+        Ok(codec.decode(self.payload, self.header.raw_len as usize, w, grid)?)
+    }
+
+    /// Decode a colour payload into a `w²` grid from its decoded LOD 1.
+    pub fn decode_colour(
+        &self,
+        codec: &ColourCodec,
+        lod1: &[Rgb],
+        w: usize,
+    ) -> Result<Vec<Rgb>, FormatError> {
+        Ok(codec.decode(self.payload, self.header.raw_len as usize, lod1, w)?)
     }
 }
 
-/// Encode a record from its raw (uncompressed) payload.
+/// Encode a record from its encoded payload ([`ElevationCodec::encode`],
+/// [`ColourCodec::encode`]).
 pub fn encode_record(
     tree: Tree,
     block: BlockId,
     children: &[ChildRef],
-    raw_payload: &[u8],
+    payload: &Payload,
 ) -> Vec<u8> {
-    let payload = codec::compress(raw_payload);
+    let raw_len = payload.raw_len;
+    let payload = &payload.bytes;
     let len = RECORD_FIXED_LEN + CHILD_REF_LEN * children.len() + payload.len() + 4;
     let mut b = Vec::with_capacity(len);
     b.extend_from_slice(&RECORD_MAGIC);
@@ -540,11 +583,11 @@ pub fn encode_record(
     b.push(children.len() as u8);
     b.extend_from_slice(&block.x.to_le_bytes());
     b.extend_from_slice(&block.y.to_le_bytes());
-    b.extend_from_slice(&(raw_payload.len() as u32).to_le_bytes());
+    b.extend_from_slice(&raw_len.to_le_bytes());
     for c in children {
         c.write(&mut b);
     }
-    b.extend_from_slice(&payload);
+    b.extend_from_slice(payload);
     let crc = crc32fast::hash(&b);
     b.extend_from_slice(&crc.to_le_bytes());
     b
@@ -821,12 +864,14 @@ mod tests {
             max_elevation: 20.0,
             elevation: TreeInfo {
                 block_width: ew,
+                codec: ElevationCodec::Quantised { max_error: 2 },
                 max_level: 3,
                 root_records: [r; 6],
                 root_first_lods: std::array::from_fn(|f| (0..eh).map(|v| (v * f) as i16).collect()),
             },
             colour: colour.then(|| TreeInfo {
                 block_width: 16,
+                codec: ColourCodec::Haar(codec::colour::HaarParams::for_psnr(42.0)),
                 max_level: 2,
                 root_records: [r; 6],
                 root_first_lods: std::array::from_fn(|f| vec![[f as u8, 2, 3]; 64]),
@@ -863,12 +908,21 @@ mod tests {
             min_elevation: 0.0,
             max_elevation: 1.0,
         }; 4];
-        let raw: Vec<u8> = (0..300u32).map(|v| (v % 7) as u8).collect();
-        let b = encode_record(Tree::Elevation, block, &kids, &raw);
+        let w = 8;
+        let grid: Vec<i16> = (0..81).map(|v| (v * v % 91) as i16 - 40).collect();
+        let codec = ElevationCodec::Quantised { max_error: 0 };
+        let b = encode_record(Tree::Elevation, block, &kids, &codec.encode(&grid, w));
         let r = parse_record(&b, Some(10_000)).unwrap();
         assert_eq!(r.header.block, block);
         assert_eq!(r.header.children, kids.to_vec());
-        assert_eq!(r.raw_payload().unwrap(), raw);
+        let mut dec = vec![0i16; 81];
+        crate::lod::elevation_place_first_lod(
+            &crate::lod::elevation_first_lod(&grid, w),
+            w,
+            &mut dec,
+        );
+        r.decode_elevation(&codec, w, &mut dec).unwrap();
+        assert_eq!(dec, grid);
         assert_eq!(peek_record_len(&b).unwrap() as usize, b.len());
         for i in 0..b.len() {
             let mut c = b.clone();
@@ -886,12 +940,59 @@ mod tests {
     }
 
     #[test]
+    fn version_1_is_refused_with_a_rebuild_hint() {
+        let mut b = sample_header(true).encode();
+        b[4..8].copy_from_slice(&1u32.to_le_bytes());
+        let n = b.len();
+        let crc = crc32fast::hash(&b[..n - 4]);
+        b[n - 4..].copy_from_slice(&crc.to_le_bytes());
+        let e = Header::decode(&b, Some(1000)).unwrap_err();
+        assert!(matches!(e, FormatError::Version(1)), "{e:?}");
+        assert!(e.to_string().contains("version 1") && e.to_string().contains("rebuild"));
+        let mut sb = Superblock {
+            header_offset: 64,
+            header_len: 100,
+            file_len: 1000,
+        }
+        .encode();
+        sb[8..12].copy_from_slice(&1u32.to_le_bytes());
+        let crc = crc32fast::hash(&sb[..60]);
+        sb[60..64].copy_from_slice(&crc.to_le_bytes());
+        assert!(matches!(
+            Superblock::decode(&sb),
+            Err(FormatError::Version(1))
+        ));
+    }
+
+    #[test]
+    fn header_codecs_round_trip() {
+        for (e, c) in [
+            (ElevationCodec::Legacy, ColourCodec::Legacy),
+            (
+                ElevationCodec::Quantised { max_error: 0 },
+                ColourCodec::Lossless,
+            ),
+            (
+                ElevationCodec::Quantised { max_error: 7 },
+                ColourCodec::Haar(codec::colour::HaarParams::for_psnr(38.0)),
+            ),
+        ] {
+            let mut h = sample_header(true);
+            h.elevation.codec = e;
+            if let Some(t) = h.colour.as_mut() {
+                t.codec = c;
+            }
+            assert_eq!(Header::decode(&h.encode(), Some(1000)).unwrap(), h);
+        }
+    }
+
+    #[test]
     fn writer_is_atomic() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("x.planetdb");
         let mut w = DbWriter::create(&path).unwrap();
         let block = BlockId::root(Face::NORTH);
-        let rec = encode_record(Tree::Elevation, block, &[], &[1, 2, 3]);
+        let rec = encode_record(Tree::Elevation, block, &[], &Payload::zstd(&[1, 2, 3]));
         let (off, size) = w.append(&rec).unwrap();
         assert!(!path.exists(), "visible before finish");
         let mut h = sample_header(false);

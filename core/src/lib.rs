@@ -14,8 +14,9 @@
 //! - [`lod`]: the interleaved LOD sample subsets of a block (thesis §3.2,
 //!   thesis-notes §1.2) and the safe level difference between neighbours
 //!   (thesis §4.3.3).
-//! - [`codec`]: the lossless payload codecs: predicted elevation residuals and
-//!   the filtered, losslessly reconstructible colour LODs (thesis §4.4.4 PTM).
+//! - [`codec`]: the payload codecs, chosen per tree in the header: the
+//!   legacy lossless ones (predicted elevation residuals, thesis §4.4.4 PTM
+//!   colour), error-bounded elevation and perceptual Haar colour.
 //! - [`format`]: the one-file database: superblock, header and self-describing
 //!   LOD records (thesis §3.3.2), byte by byte in `docs/FORMAT.md`.
 #![forbid(unsafe_code)]

@@ -26,7 +26,7 @@ use crate::error::BuildError;
 use crate::plan::Plan;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use parking_lot::Mutex;
-use planet_core::codec;
+use planet_core::codec::{colour::HaarParams, ColourCodec, ElevationCodec};
 use planet_core::format::{encode_record, ChildRef, DbWriter, Header, Tree, TreeInfo};
 use planet_core::lod::{self, Rgb};
 use planet_core::{BlockId, Datum, Face};
@@ -69,6 +69,98 @@ pub struct BuildOptions {
     /// count is capped so that threads × depth × [`GRID_BYTES_PER_LEVEL`]
     /// stays within it (at least one worker).
     pub grid_memory: Option<usize>,
+    /// Record codecs.
+    pub codecs: CodecOptions,
+}
+
+/// The elevation codec asked for (`planet-build build --max-error`,
+/// `--elevation-codec`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ElevationChoice {
+    /// Format v1's lossless lz4 byte planes (for comparisons).
+    Legacy,
+    /// Quantised and zstd-coded with this maximum error in metres (0: the
+    /// source's own exactness), rounded down to whole stored units.
+    MaxError(f64),
+}
+
+/// The colour quality asked for (`planet-build build --colour-quality`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ColourQuality {
+    /// Format v1's lossless PTM deltas under lz4 (`lossless-legacy`).
+    LosslessLegacy,
+    /// The lossless PTM deltas under zstd (`lossless`).
+    Lossless,
+    /// Haar details quantised for this PSNR in dB against the source.
+    Psnr(f32),
+}
+
+/// Default colour quality: a PSNR of 42 dB (web imagery at JPEG quality
+/// 85–90).
+pub const DEFAULT_COLOUR_PSNR: f32 = 42.0;
+
+impl std::str::FromStr for ColourQuality {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "lossless" => Ok(ColourQuality::Lossless),
+            "lossless-legacy" => Ok(ColourQuality::LosslessLegacy),
+            _ => match s.parse::<f32>() {
+                Ok(db) if db.is_finite() && (20.0..=80.0).contains(&db) => {
+                    Ok(ColourQuality::Psnr(db))
+                }
+                _ => Err(format!(
+                    "colour quality {s:?}: a PSNR in dB in [20, 80], `lossless` or `lossless-legacy`"
+                )),
+            },
+        }
+    }
+}
+
+/// The codecs of a build.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CodecOptions {
+    /// Elevation.
+    pub elevation: ElevationChoice,
+    /// Colour.
+    pub colour: ColourQuality,
+}
+
+impl Default for CodecOptions {
+    /// Exact elevation, colour at [`DEFAULT_COLOUR_PSNR`].
+    fn default() -> Self {
+        CodecOptions {
+            elevation: ElevationChoice::MaxError(0.0),
+            colour: ColourQuality::Psnr(DEFAULT_COLOUR_PSNR),
+        }
+    }
+}
+
+impl CodecOptions {
+    /// The header's codecs for a source of `scale` metres per stored unit.
+    pub fn resolve(&self, scale: f64) -> Result<(ElevationCodec, ColourCodec), BuildError> {
+        let e = match self.elevation {
+            ElevationChoice::Legacy => ElevationCodec::Legacy,
+            ElevationChoice::MaxError(m) => {
+                let k = (m / scale).floor();
+                if !(m >= 0.0 && k <= planet_core::codec::elevation::MAX_ERROR_LIMIT as f64) {
+                    return Err(BuildError::Options(format!(
+                        "--max-error {m}: must be in [0, {} m]",
+                        planet_core::codec::elevation::MAX_ERROR_LIMIT as f64 * scale
+                    )));
+                }
+                ElevationCodec::Quantised {
+                    max_error: k as u16,
+                }
+            }
+        };
+        let c = match self.colour {
+            ColourQuality::LosslessLegacy => ColourCodec::Legacy,
+            ColourQuality::Lossless => ColourCodec::Lossless,
+            ColourQuality::Psnr(db) => ColourCodec::Haar(HaarParams::for_psnr(db)),
+        };
+        Ok((e, c))
+    }
 }
 
 /// Upper estimate of what one in-flight block holds while its subtree is
@@ -121,7 +213,8 @@ impl BuildStats {
 struct Out {
     elev_lod1: Vec<i16>,
     elev_ref: ChildRef,
-    colour: Option<(Vec<Rgb>, ChildRef)>,
+    /// First LOD, reference, and colour levels below the block.
+    colour: Option<(Vec<Rgb>, ChildRef, u8)>,
 }
 
 struct Ctx<'a> {
@@ -130,6 +223,8 @@ struct Ctx<'a> {
     writer: Mutex<Option<DbWriter>>,
     out_path: &'a Path,
     scale: f64,
+    elevation_codec: ElevationCodec,
+    colour_codec: ColourCodec,
     bar: ProgressBar,
     e_records: AtomicU64,
     c_records: AtomicU64,
@@ -226,11 +321,15 @@ fn build_block(ctx: &Ctx, b: BlockId, colour_here: bool) -> Result<Out, BuildErr
         let (mn, mx) = full
             .iter()
             .fold((i16::MAX, i16::MIN), |(a, c), &v| (a.min(v), c.max(v)));
+        // The codec moves a decoded sample by up to its max error: the
+        // geometric error of every reference above includes it (once, as
+        // errors are carried up), and the bounds widen by it.
+        let k = ctx.elevation_codec.max_error() as f64;
         (
             Vec::new(),
-            0.0,
-            (mn as f64 * ctx.scale) as f32,
-            (mx as f64 * ctx.scale) as f32,
+            k * ctx.scale,
+            ((mn as f64 - k) * ctx.scale) as f32,
+            ((mx as f64 + k) * ctx.scale) as f32,
         )
     };
     let erefs: Vec<ChildRef> = kids.iter().map(|k| k.elev_ref).collect();
@@ -239,7 +338,7 @@ fn build_block(ctx: &Ctx, b: BlockId, colour_here: bool) -> Result<Out, BuildErr
         Tree::Elevation,
         b,
         &erefs,
-        &codec::encode_elevation(&full, EW),
+        &ctx.elevation_codec.encode(&full, EW),
     );
     let (offset, size) = ctx.append(&rec, Tree::Elevation)?;
     let elev_ref = ChildRef {
@@ -250,39 +349,39 @@ fn build_block(ctx: &Ctx, b: BlockId, colour_here: bool) -> Result<Out, BuildErr
         max_elevation: hi,
     };
     let colour = if colour_here {
-        let (cfull, crefs, cerr) = if csplit {
+        let (cfull, crefs, cerr, height) = if csplit {
             let mut cfull = vec![[0u8; 3]; CW * CW];
             let mut crefs = Vec::with_capacity(4);
             let mut cerr = 0f64;
+            let mut height = 0u8;
             for (k, kid) in kids.iter().enumerate() {
-                let (l1, r) = kid
+                let (l1, r, h) = kid
                     .colour
                     .as_ref()
                     .ok_or_else(|| BuildError::Options(format!("colour child of {b:?} missing")))?;
                 lod::merge_colour(l1, CW, k, &mut cfull);
                 crefs.push(*r);
                 cerr = cerr.max(r.error as f64);
+                height = height.max(h + 1);
             }
-            (cfull, crefs, cerr)
+            (cfull, crefs, cerr, height)
         } else {
-            (ctx.src.colour_leaf(b, &full)?, Vec::new(), 0.0)
+            (ctx.src.colour_leaf(b, &full)?, Vec::new(), 0.0, 0)
         };
         let lod1 = lod::colour_filter(&cfull, CW);
-        let rec = encode_record(
-            Tree::Colour,
-            b,
-            &crefs,
-            &codec::encode_colour(&cfull, &lod1, CW),
-        );
+        let (payload, codec_err) = ctx.colour_codec.encode(&cfull, &lod1, CW, height);
+        let rec = encode_record(Tree::Colour, b, &crefs, &payload);
         let (offset, size) = ctx.append(&rec, Tree::Colour)?;
+        // The codec's own error at this level adds to the filter's and the
+        // children's (each level's error reaches the finest texels).
         let r = ChildRef {
             offset,
             size,
-            error: (colour_lod_error(&cfull, &lod1, CW) + cerr) as f32,
+            error: (colour_lod_error(&cfull, &lod1, CW) + cerr + codec_err as f64) as f32,
             min_elevation: lo,
             max_elevation: hi,
         };
-        Some((lod1, r))
+        Some((lod1, r, height))
     } else {
         None
     };
@@ -337,8 +436,11 @@ fn build_inner(
         }
         b
     };
+    let (elevation_codec, colour_codec) = opts.codecs.resolve(src.elevation_scale())?;
     let writer = DbWriter::create(out).map_err(|e| BuildError::write(out, e))?;
     let ctx = Ctx {
+        elevation_codec,
+        colour_codec,
         src,
         plan,
         writer: Mutex::new(Some(writer)),
@@ -380,6 +482,7 @@ fn build_inner(
         max_elevation: max,
         elevation: TreeInfo {
             block_width: EW as u16,
+            codec: elevation_codec,
             max_level: plan.max_level(),
             root_records: std::array::from_fn(|f| roots[f].elev_ref),
             root_first_lods: std::array::from_fn(|f| roots[f].elev_lod1.clone()),
@@ -387,6 +490,7 @@ fn build_inner(
         colour: if colour {
             Some(TreeInfo {
                 block_width: CW as u16,
+                codec: colour_codec,
                 max_level: plan.colour_max_level(),
                 root_records: std::array::from_fn(|f| {
                     roots[f].colour.as_ref().map(|c| c.1).unwrap_or_default()

@@ -12,8 +12,9 @@
 //! decoded samples lie in the reference's elevation bounds. Any flipped byte
 //! fails one of these.
 
+use crate::build::GridSource;
 use crate::error::DbError;
-use planet_core::codec;
+use planet_core::codec::{colour::psnr_of_mse, ColourCodec, ElevationCodec};
 use planet_core::format::{
     parse_record, peek_record_len, ChildRef, DbFile, Header, Tree, SUPERBLOCK_LEN,
 };
@@ -111,11 +112,34 @@ pub struct VerifyReport {
     pub colour_records: u64,
     /// Deepest elevation leaf.
     pub max_level: u8,
+    /// Against the source (when given): the codec's bound on elevation
+    /// error, metres.
+    pub elevation_bound_m: Option<f64>,
+    /// Against the source: the largest error of a decoded leaf sample,
+    /// metres (at most the bound, or verify fails).
+    pub elevation_max_error_m: Option<f64>,
+    /// Against the source: PSNR (dB) of every decoded colour leaf texel.
+    pub colour_psnr: Option<f64>,
+    /// Against the source: the lowest PSNR of one colour leaf record.
+    pub colour_min_record_psnr: Option<f64>,
 }
 
 /// Fully verify a database; `Err(DbError::Corrupt)` names the first bad
 /// offset found and why.
 pub fn verify(path: &Path) -> Result<VerifyReport, DbError> {
+    verify_against(path, None)
+}
+
+/// [`verify`], and with a source (the one the database was built from)
+/// also check every decoded elevation leaf sample against the source's
+/// full-resolution samples (within the codec's max error, else
+/// `DbError::Corrupt`), and measure the colour leaves' PSNR against it.
+/// Inner blocks' samples are their leaves' samples (point-sampled LODs), so
+/// the leaves cover every record.
+pub fn verify_against(
+    path: &Path,
+    source: Option<&dyn GridSource>,
+) -> Result<VerifyReport, DbError> {
     let (db, scanned) = scan(path)?;
     let mut seen: HashMap<u64, (u32, bool)> = scanned
         .iter()
@@ -125,15 +149,38 @@ pub fn verify(path: &Path) -> Result<VerifyReport, DbError> {
     let h = db.header.clone();
     let ew = h.elevation.block_width as usize;
     let side = ew + 1;
+    let ecodec = h.elevation.codec;
+    let bound = ecodec.max_error() as f64 * h.elevation_scale as f64;
+    let mut max_err = 0f64;
+    let mut src_grid = vec![0i16; side * side];
     for f in 0..6 {
         let face = Face::ALL[f];
         let mut full = vec![0i16; side * side];
         lod::elevation_place_first_lod(&h.elevation.root_first_lods[f], ew, &mut full);
         let mut stack = vec![(BlockId::root(face), h.elevation.root_records[f], full)];
         while let Some((b, r, mut grid)) = stack.pop() {
-            let (kids, raw) = check_ref(&db, &mut seen, &r, Tree::Elevation, b)?;
-            codec::decode_elevation(&raw, ew, &mut grid)
+            let (kids, raw_len, payload) = check_ref(&db, &mut seen, &r, Tree::Elevation, b)?;
+            ecodec
+                .decode(&payload, raw_len, ew, &mut grid)
                 .map_err(|e| corrupt(r.offset, e.to_string()))?;
+            if let (Some(src), true) = (source, kids.is_empty()) {
+                src.elevation_leaf(b, &mut src_grid)
+                    .map_err(|e| corrupt(r.offset, format!("source of {b:?}: {e}")))?;
+                for (d, s) in grid.iter().zip(&src_grid) {
+                    let e = (h.metres(*d) - h.metres(*s)).abs();
+                    max_err = max_err.max(e);
+                    if e > bound + 1e-6 {
+                        return Err(corrupt(
+                            r.offset,
+                            format!(
+                                "{b:?} decoded {} m vs source {} m: error {e} m over the bound {bound} m",
+                                h.metres(*d),
+                                h.metres(*s)
+                            ),
+                        ));
+                    }
+                }
+            }
             let (lo, hi) = grid.iter().fold((f64::MAX, f64::MIN), |(a, c), &v| {
                 (a.min(h.metres(v)), c.max(h.metres(v)))
             });
@@ -155,8 +202,16 @@ pub fn verify(path: &Path) -> Result<VerifyReport, DbError> {
             }
         }
     }
+    if source.is_some() {
+        report.elevation_bound_m = Some(bound);
+        report.elevation_max_error_m = Some(max_err);
+    }
     if let Some(ct) = &h.colour {
         let cw = ct.block_width as usize;
+        let ccodec = ct.codec;
+        let lossless = matches!(ccodec, ColourCodec::Legacy | ColourCodec::Lossless);
+        let (mut se, mut n, mut min_psnr) = (0f64, 0u64, f64::INFINITY);
+        let mut src_elev = vec![0i16; side * side];
         for f in 0..6 {
             let face = Face::ALL[f];
             let mut stack = vec![(
@@ -165,17 +220,44 @@ pub fn verify(path: &Path) -> Result<VerifyReport, DbError> {
                 ct.root_first_lods[f].clone(),
             )];
             while let Some((b, r, lod1)) = stack.pop() {
-                let (kids, raw) = check_ref(&db, &mut seen, &r, Tree::Colour, b)?;
-                let full = codec::decode_colour(&raw, &lod1, cw)
+                let (kids, raw_len, payload) = check_ref(&db, &mut seen, &r, Tree::Colour, b)?;
+                let full = ccodec
+                    .decode(&payload, raw_len, &lod1, cw)
                     .map_err(|e| corrupt(r.offset, e.to_string()))?;
-                if lod::colour_filter(&full, cw) != lod1 {
+                // Lossless codecs reproduce the filtered LOD 1 exactly.
+                if lossless && lod::colour_filter(&full, cw) != lod1 {
                     return Err(corrupt(r.offset, format!("{b:?} colour LOD 1 mismatch")));
+                }
+                if let (Some(src), true) = (source, kids.is_empty()) {
+                    src.elevation_leaf(b, &mut src_elev)
+                        .map_err(|e| corrupt(r.offset, format!("source of {b:?}: {e}")))?;
+                    let want = src
+                        .colour_leaf(b, &src_elev)
+                        .map_err(|e| corrupt(r.offset, format!("source of {b:?}: {e}")))?;
+                    let rse: f64 = full
+                        .iter()
+                        .zip(&want)
+                        .flat_map(|(a, b)| (0..3).map(move |c| (a[c] as f64 - b[c] as f64).powi(2)))
+                        .sum();
+                    se += rse;
+                    n += 3 * full.len() as u64;
+                    min_psnr = min_psnr.min(psnr_of_mse(rse / (3 * full.len()) as f64));
+                    if lossless && rse != 0.0 {
+                        return Err(corrupt(
+                            r.offset,
+                            format!("{b:?} lossless colour differs from the source"),
+                        ));
+                    }
                 }
                 report.colour_records += 1;
                 for (k, c) in kids.iter().enumerate() {
                     stack.push((b.child(k), *c, lod::split_colour(&full, cw, k)));
                 }
             }
+        }
+        if source.is_some() && n > 0 {
+            report.colour_psnr = Some(psnr_of_mse(se / n as f64));
+            report.colour_min_record_psnr = Some(min_psnr);
         }
     }
     let mut unref: Vec<u64> = seen.iter().filter(|(_, v)| !v.1).map(|(k, _)| *k).collect();
@@ -187,15 +269,15 @@ pub fn verify(path: &Path) -> Result<VerifyReport, DbError> {
 }
 
 /// Check that a reference points at exactly one scanned record, not seen
-/// before, of the expected tree and block; returns its child references and
-/// decompressed payload.
+/// before, of the expected tree and block; returns its child references,
+/// raw length and (entropy-coded) payload.
 fn check_ref(
     db: &DbFile,
     seen: &mut HashMap<u64, (u32, bool)>,
     r: &ChildRef,
     tree: Tree,
     b: BlockId,
-) -> Result<(Vec<ChildRef>, Vec<u8>), DbError> {
+) -> Result<(Vec<ChildRef>, usize, Vec<u8>), DbError> {
     match seen.get_mut(&r.offset) {
         None => {
             return Err(corrupt(
@@ -230,10 +312,8 @@ fn check_ref(
             ),
         ));
     }
-    let raw = rec
-        .raw_payload()
-        .map_err(|e| corrupt(r.offset, e.to_string()))?;
-    Ok((rec.header.children, raw))
+    let payload = rec.payload.to_vec();
+    Ok((rec.header.children, rec.header.raw_len as usize, payload))
 }
 
 /// Per-level statistics of one tree.
@@ -256,6 +336,13 @@ pub struct LevelStats {
 /// Statistics of one tree.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct TreeStats {
+    /// The codec's name (`planet_core::codec`).
+    pub codec: String,
+    /// The codec's id in the header.
+    pub codec_id: u8,
+    /// The codec's parameters: elevation `max_error_units` and
+    /// `max_error_m`; colour `luma_step`, `chroma_step`, `target_psnr`.
+    pub codec_params: std::collections::BTreeMap<String, f64>,
     /// Block width.
     pub block_width: u16,
     /// Deepest level.
@@ -356,9 +443,28 @@ pub fn inspect(path: &Path) -> Result<InspectReport, DbError> {
     let mut trees = [TreeStats::default(), TreeStats::default()];
     trees[0].block_width = h.elevation.block_width;
     trees[0].max_level = h.elevation.max_level;
+    let ec: ElevationCodec = h.elevation.codec;
+    trees[0].codec = ec.name().into();
+    trees[0].codec_id = ec.id();
+    if let ElevationCodec::Quantised { max_error } = ec {
+        let p = &mut trees[0].codec_params;
+        p.insert("max_error_units".into(), max_error as f64);
+        p.insert(
+            "max_error_m".into(),
+            max_error as f64 * h.elevation_scale as f64,
+        );
+    }
     if let Some(c) = &h.colour {
         trees[1].block_width = c.block_width;
         trees[1].max_level = c.max_level;
+        trees[1].codec = c.codec.name().into();
+        trees[1].codec_id = c.codec.id();
+        if let ColourCodec::Haar(p) = c.codec {
+            let m = &mut trees[1].codec_params;
+            m.insert("luma_step".into(), p.luma_step as f64);
+            m.insert("chroma_step".into(), p.chroma_step as f64);
+            m.insert("target_psnr".into(), p.target_psnr as f64);
+        }
     }
     // Per tree and level: sum and max of the references' errors.
     let mut errs: [Vec<(f64, f32)>; 2] = [Vec::new(), Vec::new()];
@@ -520,10 +626,7 @@ impl Sampler {
                 if rec.header.block != b || rec.header.tree != Tree::Elevation {
                     return Err(corrupt(r.offset, "unexpected block"));
                 }
-                let raw = rec
-                    .raw_payload()
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
-                codec::decode_elevation(&raw, w, &mut grid)
+                rec.decode_elevation(&h.elevation.codec, w, &mut grid)
                     .map_err(|e| corrupt(r.offset, e.to_string()))?;
                 cache.insert(b, (grid.clone(), rec.header.children.clone()));
                 rec.header.children
@@ -576,10 +679,7 @@ impl Sampler {
                     .map_err(|e| corrupt(r.offset, e.to_string()))?;
                 let rec =
                     parse_record(&bytes, None).map_err(|e| corrupt(r.offset, e.to_string()))?;
-                let raw = rec
-                    .raw_payload()
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
-                codec::decode_elevation(&raw, w, &mut grid)
+                rec.decode_elevation(&h.elevation.codec, w, &mut grid)
                     .map_err(|e| corrupt(r.offset, e.to_string()))?;
                 f(b, &grid);
                 for (k, c) in rec.header.children.iter().enumerate() {
@@ -611,10 +711,8 @@ impl Sampler {
                     .map_err(|e| corrupt(r.offset, e.to_string()))?;
                 let rec =
                     parse_record(&bytes, None).map_err(|e| corrupt(r.offset, e.to_string()))?;
-                let raw = rec
-                    .raw_payload()
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
-                let full = codec::decode_colour(&raw, &lod1, w)
+                let full = rec
+                    .decode_colour(&ct.codec, &lod1, w)
                     .map_err(|e| corrupt(r.offset, e.to_string()))?;
                 f(b, &full);
                 for (k, c) in rec.header.children.iter().enumerate() {

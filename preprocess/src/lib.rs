@@ -29,7 +29,9 @@ pub mod procedural;
 pub mod source;
 pub mod voidfill;
 
-pub use build::{build, BuildOptions, BuildStats, GridSource};
+pub use build::{
+    build, BuildOptions, BuildStats, CodecOptions, ColourQuality, ElevationChoice, GridSource,
+};
 pub use error::{BuildError, DbError, GeoError};
 pub use procedural::{
     build_procedural, check_procedural_options, default_procedural_options, DetailRegion,
@@ -55,6 +57,8 @@ pub struct RasterOptions {
     /// ([`source::vertical_datum_of`]); one, every input's; one per input,
     /// in the order given.
     pub vertical: Vec<geoid::VerticalDatum>,
+    /// Record codecs.
+    pub codecs: CodecOptions,
 }
 
 impl Default for RasterOptions {
@@ -65,6 +69,7 @@ impl Default for RasterOptions {
             threads: None,
             quiet: true,
             vertical: Vec::new(),
+            codecs: CodecOptions::default(),
         }
     }
 }
@@ -182,6 +187,7 @@ pub fn build_rasters_noting(
             quiet: opts.quiet,
             // The raster caches get half of the bound; the grids the rest.
             grid_memory: Some(opts.max_memory_mb.max(8) << 19),
+            codecs: opts.codecs,
         },
     )
 }

@@ -4,7 +4,7 @@
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use planet_core::Datum;
-use planet_preprocess::{db, RasterOptions};
+use planet_preprocess::{db, CodecOptions, ColourQuality, ElevationChoice, RasterOptions};
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -84,11 +84,57 @@ enum Cmd {
         /// No progress bars.
         #[arg(long)]
         quiet: bool,
+        /// Largest elevation error in metres of any decoded sample (rounded
+        /// down to whole stored units; 0: exact, the source's own
+        /// quantisation).
+        #[arg(long, default_value_t = 0.0)]
+        max_error: f64,
+        /// Elevation codec: `quantised` (zstd, honours --max-error) or
+        /// `legacy` (format v1's lossless lz4 byte planes, for comparisons).
+        #[arg(long, default_value = "quantised", value_parser = ["quantised", "legacy"])]
+        elevation_codec: String,
+        /// Colour quality: a PSNR in dB against the source (Haar details,
+        /// zstd), `lossless` (PTM deltas, zstd) or `lossless-legacy` (format
+        /// v1's PTM deltas, lz4).
+        #[arg(long, default_value = "42")]
+        colour_quality: ColourQuality,
     },
     /// Check every record of a database; exit 1 at the first bad offset.
+    /// With the source it was built from (the same source options as
+    /// `build`), also check every decoded elevation sample against the
+    /// source within the codec's max error and report the colour PSNR.
     Verify {
         /// Database file.
         db: PathBuf,
+        /// Elevation GeoTIFFs the database was built from.
+        #[arg(long, num_args = 1..)]
+        elevation: Vec<PathBuf>,
+        /// Colour GeoTIFF the database was built from.
+        #[arg(long)]
+        colour: Option<PathBuf>,
+        /// The database is a procedural planet (give its --seed, --levels
+        /// and --detail).
+        #[arg(long, conflicts_with_all = ["elevation", "colour"])]
+        procedural: bool,
+        /// Procedural seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Procedural uniform leaf level.
+        #[arg(long, default_value_t = 4)]
+        levels: u8,
+        /// Procedural detail regions.
+        #[arg(
+            long,
+            value_name = "LAT,LON,RADIUS_KM,LEVEL",
+            allow_hyphen_values = true
+        )]
+        detail: Vec<planet_preprocess::DetailRegion>,
+        /// Deepest level (rasters).
+        #[arg(long, default_value_t = 16)]
+        max_level: u8,
+        /// JSON output.
+        #[arg(long)]
+        json: bool,
     },
     /// Print header fields and per-level statistics.
     Inspect {
@@ -144,7 +190,21 @@ fn run() -> Result<()> {
             threads,
             quiet,
             report_memory,
+            max_error,
+            elevation_codec,
+            colour_quality,
         } => {
+            let codecs = CodecOptions {
+                elevation: if elevation_codec == "legacy" {
+                    if max_error != 0.0 {
+                        bail!("--max-error needs --elevation-codec quantised");
+                    }
+                    ElevationChoice::Legacy
+                } else {
+                    ElevationChoice::MaxError(max_error)
+                },
+                colour: colour_quality,
+            };
             if !procedural && !detail.is_empty() {
                 bail!(
                     "--detail needs --procedural (raster trees follow their sources' resolution)"
@@ -170,6 +230,7 @@ fn run() -> Result<()> {
                     quiet,
                     max_memory_mb: Some(max_memory),
                     detail,
+                    codecs,
                 };
                 planet_preprocess::check_procedural_options(&opts)?;
                 planet_preprocess::build_procedural(&opts, &out)
@@ -195,6 +256,7 @@ fn run() -> Result<()> {
                         threads,
                         quiet,
                         vertical: vertical_datum,
+                        codecs,
                     },
                     &mut |n| eprintln!("note: {n}"),
                 )
@@ -227,16 +289,63 @@ fn run() -> Result<()> {
                 }
             }
         }
-        Cmd::Verify { db: path } => match db::verify(&path) {
-            Ok(r) => println!(
-                "OK: {} elevation records, {} colour records, max level {}",
-                r.elevation_records, r.colour_records, r.max_level
-            ),
-            Err(e) => {
-                println!("FAILED: {:#}", anyhow::Error::from(e));
-                std::process::exit(1);
+        Cmd::Verify {
+            db: path,
+            elevation,
+            colour,
+            procedural,
+            seed,
+            levels,
+            detail,
+            max_level,
+            json,
+        } => {
+            let result = if procedural {
+                let opts = planet_preprocess::ProceduralOptions {
+                    seed,
+                    levels,
+                    detail,
+                    ..planet_preprocess::default_procedural_options()
+                };
+                planet_preprocess::check_procedural_options(&opts)?;
+                let src = planet_preprocess::Procedural::new(&opts);
+                db::verify_against(&path, Some(&src))
+            } else if !elevation.is_empty() {
+                let e: Vec<&std::path::Path> = elevation.iter().map(|p| p.as_path()).collect();
+                let (src, _) = planet_preprocess::open_rasters(
+                    &e,
+                    colour.as_deref(),
+                    &RasterOptions {
+                        max_level,
+                        ..RasterOptions::default()
+                    },
+                )?;
+                db::verify_against(&path, Some(&src))
+            } else {
+                db::verify(&path)
+            };
+            match result {
+                Ok(r) if json => println!("{}", serde_json::to_string_pretty(&r)?),
+                Ok(r) => {
+                    println!(
+                        "OK: {} elevation records, {} colour records, max level {}",
+                        r.elevation_records, r.colour_records, r.max_level
+                    );
+                    if let (Some(b), Some(e)) = (r.elevation_bound_m, r.elevation_max_error_m) {
+                        println!("elevation error against the source: max {e} m (bound {b} m)");
+                    }
+                    if let (Some(p), Some(m)) = (r.colour_psnr, r.colour_min_record_psnr) {
+                        println!(
+                            "colour PSNR against the source: {p:.2} dB (lowest record {m:.2} dB)"
+                        );
+                    }
+                }
+                Err(e) => {
+                    println!("FAILED: {:#}", anyhow::Error::from(e));
+                    std::process::exit(1);
+                }
             }
-        },
+        }
         Cmd::Inspect { db: path, json } => {
             let r = db::inspect(&path).with_context(|| format!("inspecting {}", path.display()))?;
             if json {
@@ -288,6 +397,17 @@ fn print_inspect(r: &db::InspectReport) {
             t.samples,
             t.raw_bytes,
             100.0 * t.compression_ratio
+        );
+        let params: Vec<String> = t
+            .codec_params
+            .iter()
+            .map(|(k, v)| format!("{k} {v}"))
+            .collect();
+        println!(
+            "  codec {} (id {}) {}",
+            t.codec,
+            t.codec_id,
+            params.join(", ")
         );
         for l in &t.levels {
             println!(

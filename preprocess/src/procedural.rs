@@ -157,6 +157,8 @@ pub struct ProceduralOptions {
     pub max_memory_mb: Option<usize>,
     /// Regions built deeper than `levels` (empty: a uniform planet).
     pub detail: Vec<DetailRegion>,
+    /// Record codecs.
+    pub codecs: crate::CodecOptions,
 }
 
 /// The small default planet other crates embed: seed 1, 4 levels (blocks of
@@ -172,6 +174,7 @@ pub fn default_procedural_options() -> ProceduralOptions {
         quiet: true,
         max_memory_mb: None,
         detail: Vec::new(),
+        codecs: crate::CodecOptions::default(),
     }
 }
 
@@ -213,6 +216,7 @@ pub fn build_procedural(opts: &ProceduralOptions, out: &Path) -> Result<BuildSta
             threads: opts.threads,
             quiet: opts.quiet,
             grid_memory: opts.max_memory_mb.map(|m| m << 20),
+            codecs: opts.codecs,
         },
     )
 }

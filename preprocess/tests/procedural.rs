@@ -1,7 +1,7 @@
 //! Procedural planet: build, verify, corruption detection, exact samples.
 
 use planet_core::format::{parse_record, ChildRef, DbFile};
-use planet_core::{codec, lod, BlockId, Edge, Face};
+use planet_core::{lod, BlockId, Edge, Face};
 use planet_preprocess::db::{verify, Sampler};
 use planet_preprocess::plan::Plan;
 use planet_preprocess::{
@@ -13,11 +13,17 @@ use std::fs::OpenOptions;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
 
+/// A small planet with exact codecs (tests compare samples with the
+/// generator's).
 fn small(levels: u8, colour: bool) -> ProceduralOptions {
     ProceduralOptions {
         levels,
         colour,
         seed: 7,
+        codecs: planet_preprocess::CodecOptions {
+            colour: planet_preprocess::ColourQuality::Lossless,
+            ..Default::default()
+        },
         ..default_procedural_options()
     }
 }
@@ -261,7 +267,7 @@ fn colour_blocks(path: &Path) -> HashMap<BlockId, (ChildRef, Vec<lod::Rgb>)> {
         while let Some((b, r, lod1)) = stack.pop() {
             let bytes = db.read_record(&r).unwrap();
             let rec = parse_record(&bytes, None).unwrap();
-            let full = codec::decode_colour(&rec.raw_payload().unwrap(), &lod1, w).unwrap();
+            let full = rec.decode_colour(&ct.codec, &lod1, w).unwrap();
             for (k, c) in rec.header.children.iter().enumerate() {
                 stack.push((b.child(k), *c, lod::split_colour(&full, w, k)));
             }
@@ -366,4 +372,95 @@ fn detail_region_colour_follows_the_elevation() {
 
 fn plan_meets(b: &BlockId, cap: &planet_preprocess::plan::Cap) -> bool {
     planet_preprocess::plan::block_meets_cap(*b, cap)
+}
+
+/// Every codec choice: verify against the generator holds the elevation
+/// bound on every leaf sample (exact for 0 m and legacy) and the colour
+/// PSNR target (lossless codecs exact), and the legacy codecs are what the
+/// header says.
+#[test]
+fn codecs_meet_their_bounds_against_the_source() {
+    use planet_preprocess::{CodecOptions, ColourQuality, ElevationChoice};
+    let dir = tempfile::tempdir().unwrap();
+    for (elevation, colour) in [
+        (ElevationChoice::Legacy, ColourQuality::LosslessLegacy),
+        (ElevationChoice::MaxError(0.0), ColourQuality::Lossless),
+        (ElevationChoice::MaxError(3.0), ColourQuality::Psnr(36.0)),
+        (ElevationChoice::MaxError(0.0), ColourQuality::Psnr(45.0)),
+    ] {
+        let path = dir.path().join("c.db");
+        let mut o = small(2, true);
+        o.codecs = CodecOptions { elevation, colour };
+        build_procedural(&o, &path).unwrap();
+        let src = Procedural::new(&o);
+        let rep = planet_preprocess::db::verify_against(&path, Some(&src)).unwrap();
+        let bound = match elevation {
+            ElevationChoice::Legacy => 0.0,
+            ElevationChoice::MaxError(m) => m,
+        };
+        assert_eq!(rep.elevation_bound_m, Some(bound));
+        assert!(rep.elevation_max_error_m.unwrap() <= bound);
+        let psnr = rep.colour_psnr.unwrap();
+        match colour {
+            ColourQuality::Psnr(t) => assert!(psnr >= t as f64, "{psnr} < {t}"),
+            _ => assert_eq!(psnr, f64::INFINITY),
+        }
+        let db = DbFile::open(&path).unwrap();
+        let legacy = matches!(elevation, ElevationChoice::Legacy);
+        assert_eq!(
+            db.header.elevation.codec == planet_core::codec::ElevationCodec::Legacy,
+            legacy
+        );
+    }
+}
+
+/// The geometric error of every elevation reference includes the codec's
+/// max error: with `--max-error 3` each reference's error is the exact
+/// build's plus 3 m (added at the leaves, carried up), and the bounds widen
+/// by 3 m.
+#[test]
+fn child_errors_include_the_codec_error() {
+    use planet_preprocess::{CodecOptions, ElevationChoice};
+    let dir = tempfile::tempdir().unwrap();
+    // Per build: every reference (block, error, min, max), sorted by block.
+    let refs = |m: f64| -> Vec<(BlockId, f32, f32, f32)> {
+        let path = dir.path().join(format!("e{m}.db"));
+        let mut o = small(2, false);
+        o.codecs = CodecOptions {
+            elevation: ElevationChoice::MaxError(m),
+            ..Default::default()
+        };
+        build_procedural(&o, &path).unwrap();
+        let db = DbFile::open(&path).unwrap();
+        let mut all = Vec::new();
+        let mut stack: Vec<(BlockId, ChildRef)> = Face::ALL
+            .iter()
+            .zip(db.header.elevation.root_records)
+            .map(|(f, r)| (BlockId::root(*f), r))
+            .collect();
+        while let Some((b, r)) = stack.pop() {
+            all.push((b, r.error, r.min_elevation, r.max_elevation));
+            let bytes = db.read_record(&r).unwrap();
+            let rec = parse_record(&bytes, None).unwrap();
+            for (k, c) in rec.header.children.iter().enumerate() {
+                stack.push((b.child(k), *c));
+            }
+        }
+        all.sort_by_key(|r| r.0);
+        all
+    };
+    let (exact, bounded) = (refs(0.0), refs(3.0));
+    assert_eq!(exact.len(), 6 * 21);
+    assert_eq!(exact.len(), bounded.len());
+    for (a, b) in exact.iter().zip(&bounded) {
+        assert_eq!(a.0, b.0);
+        assert!(
+            (b.1 - (a.1 + 3.0)).abs() < 1e-3,
+            "{:?}: {} vs {} + 3",
+            a.0,
+            b.1,
+            a.1
+        );
+        assert!((b.2 - (a.2 - 3.0)).abs() < 1e-3 && (b.3 - (a.3 + 3.0)).abs() < 1e-3);
+    }
 }

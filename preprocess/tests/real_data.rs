@@ -265,3 +265,39 @@ fn rainier_voids_follow_surroundings() {
         assert!(v > 1800.0, "{lat} {lon}: {v} m");
     }
 }
+
+/// The format v2 codecs on the real data: every decoded elevation sample of
+/// every leaf within the 1 m bound of the source, exact at 0 m, and the Blue
+/// Marble tiles decoded at or above the default 42 dB PSNR (verify against
+/// the source).
+#[test]
+fn real_codecs_meet_their_bounds() {
+    let Some(d) = data_dir() else {
+        eprintln!("note: ../shared/data not found, real-data codec test skipped");
+        return;
+    };
+    let etopo = d.join("earth_etopo5_30arcmin.tif");
+    let rainier = d.join("mt_rainier_90m.tif");
+    let bm = d.join("earth_bluemarble_2048x1024.tif");
+    let dir = tempfile::tempdir().unwrap();
+    for max_error in [0.0, 1.0] {
+        let out = dir.path().join(format!("earth-{max_error}.db"));
+        let opts = RasterOptions {
+            max_memory_mb: 256,
+            codecs: planet_preprocess::CodecOptions {
+                elevation: planet_preprocess::ElevationChoice::MaxError(max_error),
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let e = [etopo.as_path(), rainier.as_path()];
+        build_rasters(&e, Some(bm.as_path()), &out, &opts).unwrap();
+        let (src, _) = planet_preprocess::open_rasters(&e, Some(bm.as_path()), &opts).unwrap();
+        let rep = planet_preprocess::db::verify_against(&out, Some(&src)).unwrap();
+        assert_eq!(rep.elevation_bound_m, Some(max_error));
+        let err = rep.elevation_max_error_m.unwrap();
+        assert!(err <= max_error, "error {err} over {max_error}");
+        let psnr = rep.colour_psnr.unwrap();
+        assert!(psnr >= 42.0, "colour PSNR {psnr}");
+    }
+}

@@ -7,6 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
+use planet_core::codec::{colour::HaarParams, ColourCodec, ElevationCodec};
 use planet_core::format::{Header, Superblock, SUPERBLOCK_LEN};
 use planet_core::{codec, format};
 use planet_protocol::{decode_request_stream, FrameDecoder, LodRequest, ResponseDecoder};
@@ -88,14 +89,28 @@ fn protocol_frames(data: &[u8]) {
 fn db_record_exercise(data: &[u8]) {
     let _ = format::peek_record_len(data);
     if let Ok(rec) = format::parse_record(data, Some(1 << 40)) {
-        if let Ok(raw) = rec.raw_payload() {
-            let w = 64;
+        let w = 64;
+        for c in [
+            ElevationCodec::Legacy,
+            ElevationCodec::Quantised { max_error: 0 },
+            ElevationCodec::Quantised { max_error: 3 },
+        ] {
             let mut grid = vec![0i16; (w + 1) * (w + 1)];
-            let _ = codec::decode_elevation(&raw, w, &mut grid);
-            let lod1 = vec![[0u8; 3]; 64 * 64];
-            let _ = codec::decode_colour(&raw, &lod1, 128);
+            let _ = rec.decode_elevation(&c, w, &mut grid);
+        }
+        let lod1 = vec![[0u8; 3]; 64 * 64];
+        for c in [
+            ColourCodec::Legacy,
+            ColourCodec::Lossless,
+            ColourCodec::Haar(HaarParams::for_psnr(42.0)),
+        ] {
+            let _ = rec.decode_colour(&c, &lod1, 128);
         }
     }
+    // The sample codecs' raw stage directly, behind no entropy layer.
+    let mut grid = vec![0i16; 17 * 17];
+    let _ = codec::elevation::decode(data, 16, 2, &mut grid);
+    let _ = codec::colour::decode(data, &[[7u8; 3]; 64], 16, &HaarParams::for_psnr(42.0));
 }
 
 /// `fuzz_targets/db_record.rs`.

@@ -27,7 +27,8 @@ fn expand(tree: &mut PartialTree, db: &DbFile, kind: Tree) -> Vec<BlockId> {
             let width = tree.tree(kind).unwrap().width;
             let bytes = db.read_record(&n.record).unwrap();
             let first = tree.first_lod(kind, &id).unwrap();
-            let d = decode_record(kind, id, width, &bytes, first).unwrap();
+            let codec = tree.tree(kind).unwrap().codec;
+            let d = decode_record(kind, id, width, codec, &bytes, first).unwrap();
             let has_children = !d.children.is_empty();
             assert!(tree.apply_refine(d));
             if has_children {
@@ -54,7 +55,8 @@ fn client_loads_the_deep_colour_tree_with_its_binding() {
         .read_record(&tree.colour().unwrap().get(&root).unwrap().record)
         .unwrap();
     let first = tree.first_lod(Tree::Colour, &root).unwrap();
-    let d = decode_record(Tree::Colour, root, 128, &bytes, first).unwrap();
+    let codec = tree.colour().unwrap().codec;
+    let d = decode_record(Tree::Colour, root, 128, codec, &bytes, first).unwrap();
     assert!(tree.apply_refine(d));
     assert_eq!(tree.split(Tree::Colour, &root), Err(Blocked::Binding));
     let esplit = expand(&mut tree, &db, Tree::Elevation);

@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use planet_client::net::{ConnectOptions, Connection, NetError};
+use planet_core::codec::{ElevationCodec, Payload};
 use planet_core::format::{
     encode_record, parse_record, ChildRef, DbWriter, Header, Tree, TreeInfo,
 };
@@ -58,13 +59,13 @@ pub fn build_db_with(path: &Path, seed: u64, extra: usize) -> Vec<(u64, u32)> {
                 seed * 1000 + (f * 10 + k) as u64,
                 1000 + 97 * k + 13 * f + extra,
             );
-            let rec = encode_record(Tree::Elevation, *child, &[], &payload);
+            let rec = encode_record(Tree::Elevation, *child, &[], &Payload::lz4(&payload));
             let (off, size) = w.append(&rec).expect("append");
             all.push((off, size));
             kids.push(child_ref(off, size));
         }
         let payload = noise(seed * 1000 + 900 + f as u64, 1500);
-        let rec = encode_record(Tree::Elevation, root, &kids, &payload);
+        let rec = encode_record(Tree::Elevation, root, &kids, &Payload::lz4(&payload));
         let (off, size) = w.append(&rec).expect("append");
         all.push((off, size));
         roots[f] = child_ref(off, size);
@@ -78,6 +79,8 @@ pub fn build_db_with(path: &Path, seed: u64, extra: usize) -> Vec<(u64, u32)> {
         max_elevation: 5.0,
         elevation: TreeInfo {
             block_width: 8,
+            // The payloads are noise, never decoded: any codec id will do.
+            codec: ElevationCodec::Legacy,
             max_level: 1,
             root_records: roots,
             root_first_lods: std::array::from_fn(|f| (0..eh).map(|v| (v + f) as i16).collect()),

@@ -1,4 +1,5 @@
-//! Lossless payload codecs of LOD records (before lz4 compression).
+//! Format v1's lossless payload codecs (the raw stage; lz4 or zstd after).
+//! Codec id 0 of both trees (and id 1 of colour, the same deltas under zstd).
 //!
 //! **Elevation** (thesis §3.3.2 "simple LOD compression"; our predictor is
 //! beyond the thesis). A record carries the samples LOD 0 adds to LOD 1, in
@@ -19,27 +20,8 @@
 //! sample, then channel), then the remainder plane, 2 bits per (cell, channel)
 //! packed four to a byte, low bits first.
 
+use super::CodecError;
 use crate::lod::{is_first_lod, Rgb};
-use thiserror::Error;
-
-/// A payload that does not decode.
-#[derive(Debug, Error, PartialEq, Eq)]
-pub enum CodecError {
-    /// The payload has the wrong length for the block width.
-    #[error("payload is {got} bytes, expected {expected}")]
-    Length {
-        /// Bytes received.
-        got: usize,
-        /// Bytes the block width requires.
-        expected: usize,
-    },
-    /// lz4 decompression failed.
-    #[error("lz4 decompression failed: {0}")]
-    Lz4(String),
-    /// A reconstructed colour sample is outside `0..=255`.
-    #[error("colour sample out of range at cell {0}")]
-    ColourRange(usize),
-}
 
 #[inline]
 fn zigzag(v: i16) -> u16 {

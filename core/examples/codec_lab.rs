@@ -1,0 +1,265 @@
+//! Measures elevation predictor / entropy-coder variants on a database's
+//! decoded grids (for choosing the codec): `cargo run --release -p
+//! planet-core --example codec_lab -- DB [k]`.
+use planet_core::format::{parse_record, DbFile};
+use planet_core::lod;
+use planet_core::{BlockId, Face};
+use std::collections::HashMap;
+
+fn grids(path: &str) -> Vec<Vec<i16>> {
+    let db = DbFile::open(path.as_ref()).unwrap();
+    let h = db.header.clone();
+    let w = h.elevation.block_width as usize;
+    let side = w + 1;
+    let mut out = Vec::new();
+    for (fi, face) in Face::ALL.iter().enumerate() {
+        let mut full = vec![0i16; side * side];
+        lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
+        let mut stack = vec![(BlockId::root(*face), h.elevation.root_records[fi], full)];
+        while let Some((b, r, mut grid)) = stack.pop() {
+            let bytes = db.read_record(&r).unwrap();
+            let rec = parse_record(&bytes, None).unwrap();
+            rec.decode_elevation(&h.elevation.codec, w, &mut grid)
+                .unwrap();
+            for (k, c) in rec.header.children.iter().enumerate() {
+                let mut cg = vec![0i16; side * side];
+                lod::split_elevation(&grid, w, k, &mut cg);
+                stack.push((b.child(k), *c, cg));
+            }
+            out.push(grid);
+        }
+    }
+    out
+}
+
+fn zz(v: i32) -> u32 {
+    ((v << 1) ^ (v >> 31)) as u32
+}
+
+/// Residuals (and a context per residual) for a predictor variant.
+fn residuals(idx: &[i32], side: usize, variant: u8) -> (Vec<i32>, Vec<u8>) {
+    let at = |i: usize, j: usize| idx[j * side + i];
+    let mut r = Vec::new();
+    let mut ctx = Vec::new();
+    let cubic = |a: i32, b: i32, c: i32, d: i32| (-a + 9 * b + 9 * c - d + 8).div_euclid(16);
+    let mid = |i: usize, j: usize| -> (i32, i32) {
+        // returns (prediction, activity)
+        if j.is_multiple_of(2) {
+            let (b, c) = (at(i - 1, j), at(i + 1, j));
+            let act = (b - c).abs();
+            if variant >= 1 && i >= 3 && i + 3 < side {
+                (cubic(at(i - 3, j), b, c, at(i + 3, j)), act)
+            } else {
+                ((b + c) >> 1, act)
+            }
+        } else {
+            let (b, c) = (at(i, j - 1), at(i, j + 1));
+            let act = (b - c).abs();
+            if variant >= 1 && j >= 3 && j + 3 < side {
+                (cubic(at(i, j - 3), b, c, at(i, j + 3)), act)
+            } else {
+                ((b + c) >> 1, act)
+            }
+        }
+    };
+    let bucket = |a: i32| -> u8 { (32 - (a as u32).leading_zeros()).min(15) as u8 };
+    for j in 0..side {
+        let range: Vec<usize> = if j.is_multiple_of(2) {
+            (1..side).step_by(2).collect()
+        } else {
+            (0..side).step_by(2).collect()
+        };
+        for i in range {
+            let (p, a) = mid(i, j);
+            r.push(at(i, j) - p);
+            ctx.push(bucket(a));
+        }
+    }
+    for j in (1..side).step_by(2) {
+        for i in (1..side).step_by(2) {
+            let (l, rr, u, d) = (at(i - 1, j), at(i + 1, j), at(i, j - 1), at(i, j + 1));
+            let p = if variant >= 2 {
+                // median-ish: mean of the two middle of four
+                let mut v = [l, rr, u, d];
+                v.sort();
+                (v[1] + v[2]) >> 1
+            } else {
+                (l + rr + u + d) >> 2
+            };
+            let a = (l - rr).abs().max((u - d).abs());
+            r.push(at(i, j) - p);
+            ctx.push(bucket(a));
+        }
+    }
+    (r, ctx)
+}
+
+/// Context from causal residual magnitudes: midpoints use the previous
+/// residual in coding order plus the LOD 1 activity; centres the four
+/// midpoints' residuals around them.
+fn residual_contexts(idx: &[i32], side: usize, r: &[i32], act: &[u8]) -> Vec<u8> {
+    let mut res = vec![0i32; side * side];
+    let mut order = Vec::new();
+    for j in 0..side {
+        let first = if j.is_multiple_of(2) { 1 } else { 0 };
+        for i in (first..side).step_by(2) {
+            order.push((i, j));
+        }
+    }
+    let n1 = order.len();
+    for j in (1..side).step_by(2) {
+        for i in (1..side).step_by(2) {
+            order.push((i, j));
+        }
+    }
+    let _ = idx;
+    let bucket = |a: u32| -> u8 { (32 - a.leading_zeros()).min(15) as u8 };
+    let mut out = Vec::with_capacity(order.len());
+    let mut prev = 0u32;
+    for (k, &(i, j)) in order.iter().enumerate() {
+        if k < n1 {
+            let c = bucket(prev * 2 + (1u32 << act[k]) / 2);
+            out.push(c.min(11));
+            prev = r[k].unsigned_abs();
+        } else {
+            let at = |i: usize, j: usize| res[j * side + i].unsigned_abs();
+            let s = at(i - 1, j) + at(i + 1, j) + at(i, j - 1) + at(i, j + 1);
+            out.push(bucket(s).min(11));
+        }
+        res[j * side + i] = r[k];
+    }
+    out
+}
+
+fn entropy(syms: &[u32]) -> f64 {
+    let mut h: HashMap<u32, usize> = HashMap::new();
+    for s in syms {
+        *h.entry(*s).or_default() += 1;
+    }
+    let n = syms.len() as f64;
+    h.values()
+        .map(|&c| -(c as f64) * (c as f64 / n).log2())
+        .sum::<f64>()
+        / 8.0
+}
+
+/// CPU time of this thread in ns (Linux).
+fn cpu_ns() -> u64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .unwrap()
+        .split_whitespace()
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+/// Decode rate of the database's own elevation records, samples per
+/// CPU-second (records read once, decoded repeatedly from memory).
+fn decode_rate(path: &str) {
+    let db = DbFile::open(path.as_ref()).unwrap();
+    let h = db.header.clone();
+    let w = h.elevation.block_width as usize;
+    let side = w + 1;
+    let mut jobs = Vec::new();
+    for (fi, face) in Face::ALL.iter().enumerate() {
+        let mut full = vec![0i16; side * side];
+        lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
+        let mut stack = vec![(BlockId::root(*face), h.elevation.root_records[fi], full)];
+        while let Some((b, r, first)) = stack.pop() {
+            let bytes = db.read_record(&r).unwrap();
+            let rec = parse_record(&bytes, None).unwrap();
+            let mut grid = first.clone();
+            rec.decode_elevation(&h.elevation.codec, w, &mut grid)
+                .unwrap();
+            for (k, c) in rec.header.children.iter().enumerate() {
+                let mut cg = vec![0i16; side * side];
+                lod::split_elevation(&grid, w, k, &mut cg);
+                stack.push((b.child(k), *c, cg));
+            }
+            jobs.push((bytes, first));
+        }
+    }
+    let n = jobs.len() * lod::elevation_new_samples(w);
+    let start = cpu_ns();
+    let mut runs = 0;
+    let mut grid = vec![0i16; side * side];
+    while cpu_ns() - start < 2_000_000_000 {
+        for (bytes, first) in &jobs {
+            let rec = parse_record(bytes, None).unwrap();
+            grid.copy_from_slice(first);
+            rec.decode_elevation(&h.elevation.codec, w, &mut grid)
+                .unwrap();
+        }
+        runs += 1;
+    }
+    let secs = (cpu_ns() - start) as f64 * 1e-9;
+    println!(
+        "{path}: {} decode {:.1} M samples per CPU-second ({} records)",
+        h.elevation.codec.name(),
+        (runs * n) as f64 / secs / 1e6,
+        jobs.len()
+    );
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if args.get(2).map(String::as_str) == Some("decode") {
+        return decode_rate(&args[1]);
+    }
+    let gs = grids(&args[1]);
+    let k: i32 = args.get(2).map_or(0, |s| s.parse().unwrap());
+    let s = 2 * k + 1;
+    let side = (gs[0].len() as f64).sqrt() as usize;
+    let n: usize = gs.len() * lod::elevation_new_samples(side - 1);
+    println!("{} grids, {} new samples, k {}", gs.len(), n, k);
+    for variant in 1..2u8 {
+        let (mut z9, mut z19, mut h0, mut hc, mut hr) = (0usize, 0usize, 0f64, 0f64, 0f64);
+        for g in &gs {
+            let idx: Vec<i32> = g.iter().map(|&v| (v as i32 + k).div_euclid(s)).collect();
+            let (r, ctx) = residuals(&idx, side, variant);
+            let syms: Vec<u32> = r.iter().map(|&v| zz(v)).collect();
+            let mut bytes = Vec::new();
+            let mut tail = Vec::new();
+            for &v in &syms {
+                if v < 255 {
+                    bytes.push(v as u8)
+                } else {
+                    bytes.push(255);
+                    tail.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+            bytes.extend_from_slice(&tail);
+            z9 += zstd::bulk::compress(&bytes, 9).unwrap().len();
+            z19 += zstd::bulk::compress(&bytes, 19).unwrap().len();
+            h0 += entropy(&syms);
+            let ctx2 = residual_contexts(&idx, side, &r, &ctx);
+            for c in 0..16u8 {
+                let sub: Vec<u32> = syms
+                    .iter()
+                    .zip(&ctx2)
+                    .filter(|(_, &x)| x == c)
+                    .map(|(s, _)| *s)
+                    .collect();
+                hr += entropy(&sub);
+            }
+            for c in 0..16u8 {
+                let sub: Vec<u32> = syms
+                    .iter()
+                    .zip(&ctx)
+                    .filter(|(_, &x)| x == c)
+                    .map(|(s, _)| *s)
+                    .collect();
+                hc += entropy(&sub);
+            }
+        }
+        println!(
+            "variant {variant}: zstd9 {:.4} B/sample, zstd19 {:.4}, order0 {:.4}, ctx {:.4}, residual ctx {:.4}",
+            z9 as f64 / n as f64,
+            z19 as f64 / n as f64,
+            h0 / n as f64,
+            hc / n as f64,
+            hr / n as f64
+        );
+    }
+}
