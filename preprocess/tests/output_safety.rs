@@ -8,11 +8,17 @@ use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+/// The legacy codecs: files of known, larger sizes (the disk-full test
+/// needs 3 levels not to fit in 4 MiB; the default codecs make 1.5 MB).
 fn opts(seed: u64, levels: u8) -> ProceduralOptions {
     ProceduralOptions {
         seed,
         levels,
         quiet: true,
+        codecs: planet_preprocess::CodecOptions {
+            elevation: planet_preprocess::ElevationChoice::Legacy,
+            colour: planet_preprocess::ColourQuality::LosslessLegacy,
+        },
         ..planet_preprocess::default_procedural_options()
     }
 }

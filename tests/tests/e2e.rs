@@ -134,6 +134,7 @@ fn assert_exact(sc: &StreamingClient, out: &FrameOutput) {
     let tol = sc.client.tolerance();
     assert!(!out.draw.is_empty());
     let mut lod0 = 0;
+    let mut full_records = 0;
     for d in &out.draw {
         let node = et.get(&d.block).expect("drawn node");
         let finest = d.lod == 0 && node.child_refs.as_ref().is_some_and(|c| c.is_empty());
@@ -173,10 +174,15 @@ fn assert_exact(sc: &StreamingClient, out: &FrameOutput) {
             }
         }
         lod0 += usize::from(d.lod == 0);
+        // A block below a root drawn at LOD 1 shows its parent's LOD 0
+        // record (a split block's full grid is its children's LOD 1): since
+        // colour refines by texel size beyond the geometry, the view may be
+        // all such blocks.
+        full_records += usize::from(d.lod == 0 || d.block.level > 0);
     }
     assert!(
-        lod0 > 0,
-        "no block at full resolution: the view tests too little"
+        full_records > 0,
+        "no record checked at full resolution: the view tests too little"
     );
     let levels: std::collections::BTreeSet<u8> = out.draw.iter().map(|d| d.block.level).collect();
     eprintln!(
