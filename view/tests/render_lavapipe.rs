@@ -500,17 +500,7 @@ fn ancestor_texture_is_used_with_its_transform() {
     let lod1 = planet_core::lod::colour_filter(&full, cw);
     let tex = Arc::new(BlockTexture::new(anc, cw, Some(&full), &lod1));
     let block = anc.child(2).child(3);
-    let mesh = Arc::new(BlockMesh::build(
-        &datum(),
-        block,
-        W,
-        &vec![0i16; (W + 1) * (W + 1)],
-        1.0,
-        0.0,
-    ));
-    let up = unit(mesh.centre);
-    r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
-    r.renderer.settings.r_min = R - 100_000.0;
+    let (mesh, up) = flat_block_in_sunlight(&mut r, block, &vec![0i16; (W + 1) * (W + 1)]);
     // The texture's colours as they are (no aerial perspective).
     r.renderer.settings.atmosphere = None;
     let blocks = vec![DrawBlock {
@@ -547,17 +537,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
     let Some(mut r) = renderer() else { return };
     let f = Face::new(0).unwrap();
     let block = BlockId::new(f, 3, 4, 4).unwrap();
-    let mesh = Arc::new(BlockMesh::build(
-        &datum(),
-        block,
-        W,
-        &vec![0i16; (W + 1) * (W + 1)],
-        1.0,
-        0.0,
-    ));
-    let up = unit(mesh.centre);
-    r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
-    r.renderer.settings.r_min = R - 100_000.0;
+    let (mesh, up) = flat_block_in_sunlight(&mut r, block, &vec![0i16; (W + 1) * (W + 1)]);
     let blocks = vec![DrawBlock {
         id: block,
         lod: 0,
@@ -692,10 +672,7 @@ fn coarse_colour_gets_rock_on_steep_slopes() {
     let g: Vec<i16> = (0..(W + 1) * (W + 1))
         .map(|k| ((k % (W + 1)) as f64 / W as f64 * width) as i16)
         .collect();
-    let mesh = Arc::new(BlockMesh::build(&datum(), block, W, &g, 1.0, 0.0));
-    let up = unit_v(mesh.centre);
-    r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
-    r.renderer.settings.r_min = R - 100_000.0;
+    let (mesh, up) = flat_block_in_sunlight(&mut r, block, &g);
     r.renderer.settings.atmosphere = None;
     let red = vec![[220u8, 20, 20]; 8 * 8];
     let lod1 = planet_core::lod::colour_filter(&red, 8);
@@ -730,6 +707,16 @@ fn coarse_colour_gets_rock_on_steep_slopes() {
     );
 }
 
-fn unit_v(v: [f64; 3]) -> [f64; 3] {
-    unit(v)
+/// `block`'s mesh from `grid` with the sun straight above it and the far
+/// plane's floor 100 km down; its centre's unit direction.
+fn flat_block_in_sunlight(
+    r: &mut HeadlessRenderer,
+    block: BlockId,
+    grid: &[i16],
+) -> (Arc<BlockMesh>, [f64; 3]) {
+    let mesh = Arc::new(BlockMesh::build(&datum(), block, W, grid, 1.0, 0.0));
+    let up = unit(mesh.centre);
+    r.renderer.settings.sun_dir = [up[0] as f32, up[1] as f32, up[2] as f32];
+    r.renderer.settings.r_min = R - 100_000.0;
+    (mesh, up)
 }
