@@ -108,6 +108,10 @@ pub struct FlightArgs {
     /// Label of this run in the summary (default: the link spec).
     #[arg(long)]
     pub label: Option<String>,
+    /// The server's congestion controller (`cubic` or `bbr`; default: the
+    /// server's default, `congestion` in docs/DEPLOY.md's server.toml).
+    #[arg(long)]
+    pub congestion: Option<String>,
 }
 
 /// The thesis's triangle budget on its high-end client (§4.6, 2 M).
@@ -430,7 +434,12 @@ fn run_link(
     let label = a.label.clone().unwrap_or_else(|| spec.to_string());
     eprintln!("== {label} / {policy}: {}", a.db.display());
     let rt = runtime(2)?;
-    let server = LocalServer::start(rt.handle(), &a.db)?;
+    let congestion = a
+        .congestion
+        .as_deref()
+        .map(str::parse::<planet_server::Congestion>)
+        .transpose()?;
+    let server = LocalServer::start_with(rt.handle(), &a.db, congestion)?;
     let bandwidth = cfg.bandwidth_bps;
     let link = rt.block_on(Link::start(
         server.addr(),
@@ -537,6 +546,7 @@ fn run_link(
             connected: sc.is_connected(),
         });
         prev_bytes = bytes;
+        sc.client.recycle(out.draw);
     }
     if std::env::var_os("PLANET_BENCH_DEBUG").is_some() {
         let camera = traj.camera_at(duration, &datum, fov, aspect, vh);

@@ -169,6 +169,7 @@ pub fn run(a: ResidentArgs) -> Result<()> {
             wall.push(w0.elapsed().as_secs_f64() * 1e3);
             ops += out.stats.splits + out.stats.merges + out.stats.refines_applied;
             server.submit(&out);
+            client.recycle(out.draw);
         }
         eprintln!(
             "{name}: {ops} splits + merges + refines, {} selection cache rebuilds",

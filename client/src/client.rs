@@ -746,6 +746,16 @@ fn tolerance_for(config: &ClientConfig, qf: f64) -> f64 {
     }
 }
 
+impl Client {
+    /// Hands the draw list of an earlier [`Client::frame`] back, so that
+    /// the next frame reuses its allocation instead of allocating (and
+    /// faulting in) a fresh one. Optional: a caller that drops its
+    /// [`FrameOutput`] instead loses nothing but that reuse.
+    pub fn recycle(&mut self, draw: Vec<DrawBlock>) {
+        self.selector.recycle(draw);
+    }
+}
+
 impl Drop for Client {
     fn drop(&mut self) {
         self.jobs = None;

@@ -156,17 +156,36 @@ impl ScreenError {
 
     /// Screen-space error in pixels of `error` metres at `distance` metres.
     pub fn of(&self, error: f64, distance: f64) -> f64 {
+        self.apply(error, self.scale(distance))
+    }
+
+    /// Pixels per metre of error at `distance` metres, `H / (2·d·tan(fov/2))`
+    /// (finite and non-negative; `distance` at least 1 mm): the factor of
+    /// [`ScreenError::of`], computed once for the several errors of one
+    /// block.
+    pub fn scale(&self, distance: f64) -> f64 {
         let d = if distance.is_finite() {
             distance.max(1e-3)
         } else {
             f64::MAX
         };
+        let k = self.h / (2.0 * d * self.t);
+        if k.is_finite() {
+            k
+        } else {
+            f64::MAX
+        }
+    }
+
+    /// Screen-space error in pixels of `error` metres at the distance whose
+    /// [`ScreenError::scale`] is `scale`.
+    pub fn apply(&self, error: f64, scale: f64) -> f64 {
         let e = if error.is_finite() {
             error.max(0.0)
         } else {
             0.0
         };
-        let rho = e * self.h / (2.0 * d * self.t);
+        let rho = e * scale;
         if rho.is_finite() {
             rho
         } else {

@@ -290,6 +290,10 @@ pub struct Measure {
     pub b: f64,
     /// Distance from the eye to the block (`|eye − centre| − radius`).
     pub dist: f64,
+    /// Pixels per metre at that distance (at least the near distance):
+    /// [`crate::importance::ScreenError::scale`], for the drawn block's
+    /// error and area ([`Refiner::drawn_error`], [`Refiner::drawn_area`]).
+    pub scale: f64,
 }
 
 /// A leaf's decisions for one frame.
@@ -407,13 +411,14 @@ impl Refiner {
                     a: self.imp.of(dist, radius, width),
                     b: 0.0,
                     dist,
+                    scale: self.sse.scale(dist.max(self.near)),
                 }
             }
             _ => {
                 let dist = fp.distance_from(self.eye, self.eye_len);
-                let d = dist.max(self.near);
+                let k = self.sse.scale(dist.max(self.near));
                 let (s1, s0) = match kind {
-                    Kind::Elevation => (self.sse.of(err1, d), self.sse.of(err0, d)),
+                    Kind::Elevation => (self.sse.apply(err1, k), self.sse.apply(err0, k)),
                     Kind::Colour => {
                         // The footprint's side over the texels across it
                         // at each LOD, where the LOD adds any colour.
@@ -422,19 +427,24 @@ impl Refiner {
                         let texel0 = side / width.max(1.0);
                         (
                             if err1 > 0.0 {
-                                self.sse.of(texel1, d)
+                                self.sse.apply(texel1, k)
                             } else {
                                 0.0
                             },
                             if err0 > 0.0 {
-                                self.sse.of(texel0, d)
+                                self.sse.apply(texel0, k)
                             } else {
                                 0.0
                             },
                         )
                     }
                 };
-                Measure { a: s1, b: s0, dist }
+                Measure {
+                    a: s1,
+                    b: s0,
+                    dist,
+                    scale: k,
+                }
             }
         }
     }
@@ -525,9 +535,17 @@ impl Refiner {
     /// `radius` at distance `dist`: `(√2·radius·H / (2·d·tan(fov/2)))²`, at
     /// most the viewport's area.
     pub fn screen_area(&self, radius: f64, dist: f64) -> f64 {
-        let side = self
-            .sse
-            .of(radius * std::f64::consts::SQRT_2, dist.max(self.near));
+        self.area_at(radius, self.sse.scale(dist.max(self.near)))
+    }
+
+    /// [`Refiner::screen_area`] of a block of footprint radius `radius`
+    /// at the measure's distance.
+    pub fn drawn_area(&self, m: &Measure, radius: f64) -> f64 {
+        self.area_at(radius, m.scale)
+    }
+
+    fn area_at(&self, radius: f64, scale: f64) -> f64 {
+        let side = self.sse.apply(radius * std::f64::consts::SQRT_2, scale);
         (side * side).min(self.max_area)
     }
 
@@ -539,6 +557,12 @@ impl Refiner {
     /// pixels and would outweigh the rest of any flight in an integral).
     pub fn screen_error(&self, error: f64, dist: f64) -> f64 {
         self.sse.of(error, dist.max(self.near)).min(self.height)
+    }
+
+    /// [`Refiner::screen_error`] of `error` metres at the measure's
+    /// distance.
+    pub fn drawn_error(&self, m: &Measure, error: f64) -> f64 {
+        self.sse.apply(error, m.scale).min(self.height)
     }
 }
 
@@ -639,6 +663,28 @@ mod tests {
                 let m = r.measure(Kind::Elevation, &ball(c, radius), 64.0, e1, e0);
                 prop_assert!(r.load_priority(&m, 1, 10, c, 3000).is_finite());
                 prop_assert!(r.split_priority(&m, 10, c).is_finite());
+            }
+        }
+
+        /// The drawn block's error and area from the measure's scale are
+        /// those of the distance (one formula), finite and capped, for every
+        /// policy, from inside the planet to 1000 Earth radii, 1° to 170°.
+        #[test]
+        fn drawn_error_is_the_distance_error(
+            x in -6.4e9f64..6.4e9, fov in 1.0f64..170.0, e in 0.0f64..1e4,
+            radius in 1.0f64..5e6,
+        ) {
+            let v = view(DVec3::new(x, 1.0, 0.0), fov);
+            let c = DVec3::new(6.37e6, 0.0, 0.0);
+            for p in Policy::ALL {
+                let r = Refiner::new(p, &v, 1e4, 1.0);
+                let m = r.measure(Kind::Elevation, &ball(c, radius), 64.0, e, e);
+                let (a, b) = (r.drawn_error(&m, e), r.screen_error(e, m.dist));
+                prop_assert!((0.0..=1080.0).contains(&a));
+                prop_assert!((a - b).abs() <= 1e-12 * b.max(1.0), "{a} {b}");
+                let (a, b) = (r.drawn_area(&m, radius), r.screen_area(radius, m.dist));
+                prop_assert!(a.is_finite() && a >= 0.0);
+                prop_assert!((a - b).abs() <= 1e-12 * b.max(1.0), "{a} {b}");
             }
         }
 
@@ -746,6 +792,7 @@ mod tests {
             a: 0.7,
             b: 0.2,
             dist: 1e3,
+            scale: 1.0,
         };
         assert_eq!(r.leaf(&m, 1).lod, 1);
         assert_eq!(r.leaf(&m, 0).lod, 0);

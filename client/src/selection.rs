@@ -165,8 +165,8 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 cx.trigger_split(Tree::Elevation, id, p, 0);
             }
             let error = if lod == 1 { err1 } else { err0 };
-            let sse = refiner.screen_error(error, m.dist);
-            let area = refiner.screen_area(b.radius, m.dist);
+            let sse = refiner.drawn_error(&m, error);
+            let area = refiner.drawn_area(&m, b.radius);
             cx.draw(id, lod, et.width, d.importance, (sse, area));
         }
     }
@@ -504,7 +504,11 @@ pub struct Selector {
     /// Per frame: the drawn LOD of visible leaves.
     drawn: Vec<u8>,
     cdrawn: Vec<u8>,
-    draw_idx: Vec<u32>,
+    /// Per drawn block: its elevation node and colour binding.
+    draw_idx: Vec<(u32, Binding)>,
+    /// A draw list handed back by the caller ([`Selector::recycle`]),
+    /// reused so that a frame does not allocate (and fault in) a fresh one.
+    spare_draw: Vec<DrawBlock>,
     last_draw: usize,
     rebuilds: u64,
     splices: u64,
@@ -1200,10 +1204,13 @@ impl Selector {
     /// result as [`select`]`(tree, view, qf)`.
     pub fn select(&mut self, tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
         self.update(tree);
+        let mut draw = std::mem::take(&mut self.spare_draw);
+        draw.clear();
+        draw.reserve(self.last_draw);
         let mut cx = Ctx {
             tree,
             out: Selection {
-                draw: Vec::with_capacity(self.last_draw),
+                draw,
                 ..Selection::default()
             },
         };
@@ -1312,15 +1319,15 @@ impl Selector {
                 cx.trigger_split(Tree::Elevation, id, p, 0);
             }
             let m = &mut self.memo[i];
+            let c = &self.cold[h.slot as usize];
             if m.sse_lod != lod {
-                let c = &self.cold[h.slot as usize];
                 let error = if lod == 1 { c.err1 } else { c.err0 };
-                m.sse = refiner.screen_error(error, mm.dist);
+                m.sse = refiner.drawn_error(&mm, error);
                 m.sse_lod = lod;
             }
-            let area = refiner.screen_area(h.radius, mm.dist);
+            let area = refiner.drawn_area(&mm, h.radius);
             cx.draw(id, lod, et.width, d.importance, (m.sse, area));
-            self.draw_idx.push(i as u32);
+            self.draw_idx.push((i as u32, c.colour));
         }
         // Colour tree.
         self.cdrawn.clear();
@@ -1387,8 +1394,7 @@ impl Selector {
         }
         // Neighbour LODs and colour bindings (split and hidden nodes have
         // no drawn LOD).
-        for (d, &i) in cx.out.draw.iter_mut().zip(&self.draw_idx) {
-            let c = &self.cold[self.hot[i as usize].slot as usize];
+        for (d, &(i, binding)) in cx.out.draw.iter_mut().zip(&self.draw_idx) {
             for (k, &j) in self.nb[i as usize].iter().enumerate() {
                 if j == NONE {
                     continue;
@@ -1405,7 +1411,7 @@ impl Selector {
                         + (d.block.level as i32 - nid.level as i32),
                 });
             }
-            d.colour = match c.colour {
+            d.colour = match binding {
                 Binding::None => None,
                 Binding::Node(j) => {
                     let cn = &self.cnodes[j as usize];
@@ -1426,6 +1432,15 @@ impl Selector {
         }
         self.last_draw = cx.out.draw.len();
         cx.out
+    }
+
+    /// Hands a draw list of an earlier [`Selector::select`] back for reuse
+    /// (its contents are dropped; only its allocation is kept).
+    pub fn recycle(&mut self, mut draw: Vec<DrawBlock>) {
+        if draw.capacity() > self.spare_draw.capacity() {
+            draw.clear();
+            self.spare_draw = draw;
+        }
     }
 }
 

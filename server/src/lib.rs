@@ -34,7 +34,9 @@ use quinn::VarInt;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
-pub use config::{ConfigError, DatabaseConfig, ServerConfig, StorageMode, TenantConfig, TlsSource};
+pub use config::{
+    ConfigError, Congestion, DatabaseConfig, ServerConfig, StorageMode, TenantConfig, TlsSource,
+};
 pub use db::{DbError, ReloadOutcome};
 pub use metrics::Metrics;
 pub use token::Token;
@@ -391,9 +393,18 @@ fn transport_config(cfg: &ServerConfig) -> Result<quinn::TransportConfig, Server
     t.mtu_discovery_config(Some(mtu));
     // A larger initial congestion window: the Welcome (the database header)
     // goes out in one flight instead of 2–3 slow-start round trips.
-    let mut cc = quinn::congestion::CubicConfig::default();
-    cc.initial_window(cfg.initial_window);
-    t.congestion_controller_factory(Arc::new(cc));
+    match cfg.congestion {
+        Congestion::Cubic => {
+            let mut cc = quinn::congestion::CubicConfig::default();
+            cc.initial_window(cfg.initial_window);
+            t.congestion_controller_factory(Arc::new(cc));
+        }
+        Congestion::Bbr => {
+            let mut cc = quinn::congestion::BbrConfig::default();
+            cc.initial_window(cfg.initial_window);
+            t.congestion_controller_factory(Arc::new(cc));
+        }
+    }
     t.initial_rtt(Duration::from_millis(u64::from(cfg.initial_rtt_ms)));
     Ok(t)
 }

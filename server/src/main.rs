@@ -98,6 +98,9 @@ struct RunArgs {
     /// config; default 65536, QUIC's own default is about 14 720).
     #[arg(long)]
     initial_window: Option<u64>,
+    /// Congestion controller: bbr (default) or cubic (config `congestion`).
+    #[arg(long)]
+    congestion: Option<String>,
     /// Connections one client IP may hold (overrides the config; default
     /// 64). Benchmarks that simulate many clients from one address raise it.
     #[arg(long)]
@@ -184,6 +187,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if let Some(w) = args.initial_window {
         cfg.initial_window = w;
+    }
+    if let Some(c) = &args.congestion {
+        cfg.congestion = c.parse()?;
     }
     if let Some(m) = args.max_connections_per_address {
         cfg.max_connections_per_address = m;

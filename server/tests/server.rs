@@ -709,6 +709,15 @@ fn config_errors_are_clear() {
     let jumbo = format!("max_udp_payload = 8952\n{ok}");
     let c = ServerConfig::from_toml_str(&jumbo, dir.path()).unwrap();
     assert_eq!(c.max_udp_payload, 8952);
+    // The congestion controller: BBR unless the file says otherwise.
+    let c = ServerConfig::from_toml_str(&ok, dir.path()).unwrap();
+    assert_eq!(c.congestion, planet_server::Congestion::Bbr);
+    let cubic = format!("congestion = \"cubic\"\n{ok}");
+    let c = ServerConfig::from_toml_str(&cubic, dir.path()).unwrap();
+    assert_eq!(c.congestion, planet_server::Congestion::Cubic);
+    let reno = format!("congestion = \"reno\"\n{ok}");
+    let e = ServerConfig::from_toml_str(&reno, dir.path()).unwrap_err();
+    assert!(e.to_string().contains("congestion \"reno\""), "{e}");
     let tiny = format!("max_udp_payload = 900\n{ok}");
     let e = ServerConfig::from_toml_str(&tiny, dir.path()).unwrap_err();
     assert!(e.to_string().contains("max_udp_payload 900"), "{e}");

@@ -11,7 +11,7 @@ use planet_core::cube::{direction_from_lat_lon, FaceCoord};
 use planet_core::format::Header;
 use planet_core::{BlockId, Datum};
 use planet_protocol::Hello;
-use planet_server::{Server, ServerConfig, ServerHandle, TlsSource};
+use planet_server::{Congestion, Server, ServerConfig, ServerHandle, TlsSource};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -80,6 +80,7 @@ pub struct LocalServer {
     db: PathBuf,
     cert: Arc<DevCert>,
     runtime: tokio::runtime::Handle,
+    congestion: Option<Congestion>,
 }
 
 /// Name of the database a [`LocalServer`] serves (the file stem).
@@ -94,6 +95,7 @@ fn server_config(
     db: &Path,
     listen: SocketAddr,
     cert: &DevCert,
+    congestion: Option<Congestion>,
 ) -> Result<ServerConfig, HarnessError> {
     let mut cfg = ServerConfig::single_database(db, listen, "")
         .map_err(|e| HarnessError::Server(e.to_string()))?;
@@ -102,6 +104,9 @@ fn server_config(
         key: cert.key.clone(),
     };
     cfg.shutdown_grace = Duration::from_millis(200);
+    if let Some(c) = congestion {
+        cfg.congestion = c;
+    }
     for t in &mut cfg.tenants {
         t.max_in_flight = 256;
     }
@@ -112,8 +117,19 @@ impl LocalServer {
     /// Starts a server for `db` on `127.0.0.1:0` with a new certificate.
     /// Call from outside the runtime's worker threads (it blocks on it).
     pub fn start(runtime: &tokio::runtime::Handle, db: &Path) -> Result<LocalServer, HarnessError> {
+        Self::start_with(runtime, db, None)
+    }
+
+    /// [`LocalServer::start`] with another congestion controller than the
+    /// server's default (`None`: the default).
+    pub fn start_with(
+        runtime: &tokio::runtime::Handle,
+        db: &Path,
+        congestion: Option<Congestion>,
+    ) -> Result<LocalServer, HarnessError> {
         let cert = Arc::new(DevCert::generate()?);
-        Self::start_on(runtime, db, SocketAddr::from(([127, 0, 0, 1], 0)), cert)
+        let listen = SocketAddr::from(([127, 0, 0, 1], 0));
+        Self::start_inner(runtime, db, listen, cert, congestion)
     }
 
     /// Starts a server for `db` on `listen` with `cert`.
@@ -123,7 +139,17 @@ impl LocalServer {
         listen: SocketAddr,
         cert: Arc<DevCert>,
     ) -> Result<LocalServer, HarnessError> {
-        let cfg = server_config(db, listen, &cert)?;
+        Self::start_inner(runtime, db, listen, cert, None)
+    }
+
+    fn start_inner(
+        runtime: &tokio::runtime::Handle,
+        db: &Path,
+        listen: SocketAddr,
+        cert: Arc<DevCert>,
+        congestion: Option<Congestion>,
+    ) -> Result<LocalServer, HarnessError> {
+        let cfg = server_config(db, listen, &cert, congestion)?;
         let handle = runtime
             .block_on(Server::start(cfg))
             .map_err(|e| HarnessError::Server(e.to_string()))?;
@@ -133,6 +159,7 @@ impl LocalServer {
             db: db.to_path_buf(),
             cert,
             runtime: runtime.clone(),
+            congestion,
         })
     }
 
@@ -175,7 +202,7 @@ impl LocalServer {
         self.stop();
         let mut last = None;
         for _ in 0..50 {
-            match server_config(&self.db, self.addr, &self.cert) {
+            match server_config(&self.db, self.addr, &self.cert, self.congestion) {
                 Ok(cfg) => match self.runtime.block_on(Server::start(cfg)) {
                     Ok(h) => {
                         self.handle = Some(h);

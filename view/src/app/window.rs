@@ -848,7 +848,8 @@ impl App {
         let scale = if w >= 1600 { 2 } else { 1 };
         let panel = self.show_hud.then(|| hud::rasterise(&lines, scale));
         gfx.set_hud(panel.as_ref());
-        self.last_stats = Some(out.stats.clone());
+        self.last_stats = Some(out.stats);
+        client.client.recycle(out.draw);
 
         // Draw.
         let frame = match gfx.surface.get_current_texture() {
