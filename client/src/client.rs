@@ -624,7 +624,29 @@ impl Client {
                 // needed.
                 let fp = Footprint::ball(b);
                 let m = later.measure(kind, &fp, w, n.record.error as f64, 0.0);
-                later.leaf(&m, n.lod).load
+                if later.leaf(&m, n.lod).load {
+                    return true;
+                }
+                // An elevation load that colour asked for (its colour block
+                // wants children finer than the geometry needs, and may
+                // split only under a split elevation block, §4.4.1): kept
+                // while the colour block still wants them at arrival.
+                r.tree == Tree::Elevation
+                    && tree
+                        .colour()
+                        .and_then(|t| t.get(&r.block))
+                        .is_some_and(|c| {
+                            c.can_split_data().is_ok() && {
+                                let cm = later.measure(
+                                    Kind::Colour,
+                                    &fp,
+                                    cw,
+                                    c.record.error as f64,
+                                    c.child_error(),
+                                );
+                                later.leaf(&cm, c.lod).split
+                            }
+                        })
             })
             .collect();
         if self.config.link_window {

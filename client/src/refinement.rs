@@ -449,6 +449,23 @@ impl Refiner {
         }
     }
 
+    /// Whether a split block of footprint `fp` whose own record's error is
+    /// `err1` surely keeps its children, decided without its full measure:
+    /// with the distance bounded from above by `|eye − centre| +
+    /// sphere_radius` (every bounding point lies in that ball, and each
+    /// term of [`Footprint::distance_from`] is at most the distance to a
+    /// bounding point), its first LOD's screen-space error is still above
+    /// [`MERGE_AT`] of the tolerance. `false` means "measure it" (always
+    /// for the thesis's importance).
+    pub fn surely_keeps_split(&self, fp: &Footprint, err1: f64) -> bool {
+        if self.policy == Policy::Thesis {
+            return false;
+        }
+        let upper = (self.eye - fp.centre).length() + fp.sphere_radius;
+        // NaN compares false: measured.
+        self.sse.apply(err1, self.sse.scale(upper.max(self.near))) > self.tol * MERGE_AT
+    }
+
     /// Whether a split block whose measure is `m` should merge, and the
     /// operation's priority.
     pub fn merge(&self, m: &Measure) -> Option<f64> {
@@ -737,6 +754,9 @@ mod tests {
             let dist = fp.distance(eye);
             prop_assert!(!dist.is_nan());
             prop_assert!(dist >= (eye - b.centre).length() - b.sphere_radius - 1e-6);
+            // The upper bound Refiner::surely_keeps_split relies on.
+            let upper = (eye - b.centre).length() + b.sphere_radius;
+            prop_assert!(dist <= upper * (1.0 + 1e-12), "{dist} > {upper}");
             let (s0, t0, s1, t1) = id.extent();
             let k = 24;
             let mut min = f64::INFINITY;

@@ -27,7 +27,7 @@
 use crate::refinement::{Footprint, Kind, Measure, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{
-    Blocked, ChangeKind, FastMap, LinkedTree, Node, PartialTree, TreeChange, TreeChanges, TreeStamp,
+    Blocked, ChangeKind, FastMap, LinkedTree, PartialTree, TreeChange, TreeChanges, TreeStamp,
 };
 use crate::visibility::{BlockBounds, View};
 use glam::DVec3;
@@ -118,7 +118,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             let Some(n) = et.get(&id) else { continue };
             let Some(b) = n.bounds.as_ref() else { continue };
             let visible = parent_visible && view.is_visible(b);
-            let (err1, err0) = (n.record.error as f64, child_error(n));
+            let (err1, err0) = (n.record.error as f64, n.child_error());
             let m = refiner.measure(Kind::Elevation, &Footprint::of(b), ew, err1, err0);
             if n.split {
                 info.insert(
@@ -146,6 +146,15 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             }
             let d = refiner.leaf(&m, n.lod);
             let lod = d.lod.max(n.lod);
+            let lod = if visible
+                && lod == 1
+                && n.lod == 0
+                && colour_holds_split(tree, refiner, &id, &Footprint::of(b))
+            {
+                0
+            } else {
+                lod
+            };
             info.insert(
                 id,
                 NodeFrame {
@@ -182,7 +191,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                     continue;
                 };
                 let visible = info.get(&id).is_some_and(|i| i.visible);
-                let (err1, err0) = (n.record.error as f64, child_error(n));
+                let (err1, err0) = (n.record.error as f64, n.child_error());
                 let m = refiner.measure(Kind::Colour, &Footprint::of(b), cw, err1, err0);
                 if n.split {
                     if let Some(p) = refiner.merge(&m) {
@@ -673,7 +682,7 @@ impl Selector {
                 h.split = n.split;
                 h.lod = n.lod;
                 h.splittable = n.can_split_data().is_ok();
-                self.cold[h.slot as usize].err0 = child_error(n);
+                self.cold[h.slot as usize].err0 = n.child_error();
                 // Generation 0 is never valid: the measure (LOD 0's error
                 // came with the record) and the error are recomputed.
                 self.memo[i].gen = 0;
@@ -686,7 +695,7 @@ impl Selector {
                     c.split = n.split;
                     c.lod = n.lod;
                     c.splittable = n.can_split_data().is_ok();
-                    c.err0 = child_error(n);
+                    c.err0 = n.child_error();
                     self.cmemo[j as usize].0 = 0;
                 }
             }
@@ -748,7 +757,7 @@ impl Selector {
                 bounds: b.clone(),
                 parts: !b.parts.is_empty(),
                 err1: n.record.error as f64,
-                err0: child_error(n),
+                err0: n.child_error(),
                 fp: Footprint::of(b),
                 record: n.record,
                 colour: Binding::None,
@@ -887,7 +896,7 @@ impl Selector {
                         lod: cn.lod,
                         splittable: cn.can_split_data().is_ok(),
                         record: cn.record,
-                        err0: child_error(cn),
+                        err0: cn.child_error(),
                     });
                     if cn.split {
                         let ec = self.children[elev as usize];
@@ -1103,7 +1112,7 @@ impl Selector {
                         lod: cn.lod,
                         splittable: cn.can_split_data().is_ok(),
                         record: cn.record,
-                        err0: child_error(cn),
+                        err0: cn.child_error(),
                     };
                     (c, (0, Measure::default()))
                 };
@@ -1257,10 +1266,14 @@ impl Selector {
             };
             self.state[i] = st;
             if h.split {
-                // Split blocks only ask whether to merge (visible or not).
+                // Split blocks only ask whether to merge (visible or not);
+                // most are surely kept, which needs no measure.
                 let m = &mut self.memo[i];
                 if m.gen != gen {
                     let c = &self.cold[h.slot as usize];
+                    if refiner.surely_keeps_split(&c.fp, c.err1) {
+                        continue;
+                    }
                     m.gen = gen;
                     m.m = refiner.measure(Kind::Elevation, &c.fp, ew, c.err1, c.err0);
                     m.sse_lod = NOT_DRAWN;
@@ -1299,6 +1312,14 @@ impl Selector {
             let id = self.ids[i];
             let d = refiner.leaf(&mm, h.lod);
             let lod = d.lod.max(h.lod);
+            let lod = if lod == 1
+                && h.lod == 0
+                && colour_holds_split(tree, refiner, &id, &self.cold[h.slot as usize].fp)
+            {
+                0
+            } else {
+                lod
+            };
             self.drawn[i] = lod;
             if d.load {
                 cx.out.loads.push(LoadRequest {
@@ -1514,11 +1535,13 @@ fn exact_visible(view: &View, c: &mut Cold) -> bool {
     v
 }
 
-/// Largest error of the children's records (the error at LOD 0), 0 without.
-/// Whether the colour leaf with the id of a split elevation block wants its
+/// Whether the colour leaf with the id of an elevation block wants its
 /// children (its LOD 0 is loaded, has children, and its texels are coarser
-/// than the tolerance): the elevation block then stays split, since colour
-/// can split only under a split elevation block (§4.4.1's binding).
+/// than the tolerance). Colour can split only under a split elevation block
+/// (§4.4.1's binding), so a split elevation block then stays split, and a
+/// leaf whose LOD 0 colour asked for ([`Ctx::split_colour`]) is drawn at
+/// LOD 0: it splits in the next frame, its children drawn at LOD 1 from the
+/// same samples and triangles.
 fn colour_holds_split(tree: &PartialTree, refiner: &Refiner, id: &BlockId, fp: &Footprint) -> bool {
     let Some(ct) = tree.colour() else {
         return false;
@@ -1532,13 +1555,7 @@ fn colour_holds_split(tree: &PartialTree, refiner: &Refiner, id: &BlockId, fp: &
         fp,
         ct.width as f64,
         c.record.error as f64,
-        child_error(c),
+        c.child_error(),
     );
     refiner.leaf(&m, c.lod).split
-}
-
-fn child_error(n: &Node) -> f64 {
-    n.child_refs.as_ref().map_or(0.0, |c| {
-        c.iter().map(|r| r.error as f64).fold(0.0, f64::max)
-    })
 }

@@ -221,6 +221,15 @@ impl Node {
         !self.split
     }
 
+    /// The geometric error of the block drawn at LOD 0: the largest error
+    /// of its children's records (0 before its record is loaded, or
+    /// without children).
+    pub fn child_error(&self) -> f64 {
+        self.child_refs.as_ref().map_or(0.0, |c| {
+            c.iter().map(|r| r.error as f64).fold(0.0, f64::max)
+        })
+    }
+
     /// Whether the node can split as far as its own data go.
     pub fn can_split_data(&self) -> Result<(), Blocked> {
         if self.split {
