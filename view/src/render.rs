@@ -195,8 +195,12 @@ pub struct RenderSettings {
     pub sun_dir: [f32; 3],
     /// Ambient light fraction.
     pub ambient: f32,
-    /// Background colour (linear RGBA).
+    /// Background colour (linear RGBA) of space; with an [`Atmosphere`],
+    /// the sky's colour inside the air ([`Atmosphere::sky`]).
     pub clear: [f64; 4],
+    /// The datum's semi-axes (equatorial, polar) in metres: the eye's
+    /// altitude for the sky's colour.
+    pub radii: [f64; 2],
     /// Aerial perspective ([`Atmosphere`]); `None`: none.
     pub atmosphere: Option<Atmosphere>,
     /// Evict cached GPU meshes and textures not drawn for this many frames.
@@ -211,6 +215,7 @@ impl RenderSettings {
             depth_mode: DepthMode::Horizon,
             r_min: datum.polar_radius() + min_elev,
             r_max: datum.equatorial_radius() + max_elev,
+            radii: [datum.equatorial_radius(), datum.polar_radius()],
             sun_dir: [0.6, 0.5, 0.62],
             ambient: 0.25,
             clear: [0.0, 0.0, 0.02, 1.0],
@@ -243,6 +248,40 @@ impl Atmosphere {
         scale_height: 8_000.0,
         visibility: 120_000.0,
     };
+
+    /// The sky's colour at full density: the colour the aerial
+    /// perspective fades terrain to (shader.wgsl `aerial`), lit by the
+    /// sun's height `sun_up` (cosine of its zenith angle, clamped to 0..1).
+    pub fn sky_colour(sun_up: f64) -> [f64; 3] {
+        let k = 0.2 + 0.8 * sun_up.clamp(0.0, 1.0);
+        [0.50 * k, 0.66 * k, 0.90 * k]
+    }
+
+    /// The background seen from `eye` (planet frame, metres): `space`
+    /// above the air, the sky's colour ([`Atmosphere::sky_colour`] at the
+    /// sun's height there) within it, mixed by the air's density at the
+    /// eye's altitude above the ellipsoid of semi-axes `radii` (equatorial,
+    /// polar; `exp(−h/H)`, 1 at and below the surface). `sun` is a unit
+    /// vector. Finite for every eye: at the centre, or not finite, `space`.
+    pub fn sky(&self, eye: [f64; 3], sun: [f64; 3], radii: [f64; 2], space: [f64; 4]) -> [f64; 4] {
+        let len = (eye[0] * eye[0] + eye[1] * eye[1] + eye[2] * eye[2]).sqrt();
+        if !(len.is_finite() && len > 0.0) {
+            return space;
+        }
+        let d = eye.map(|v| v / len);
+        let (a, b) = (radii[0].max(1.0), radii[1].max(1.0));
+        let r = 1.0 / ((d[0] * d[0] + d[1] * d[1]) / (a * a) + d[2] * d[2] / (b * b)).sqrt();
+        let h = (len - r).max(0.0);
+        let density = (-h / f64::from(self.scale_height.max(1.0))).exp();
+        let sun_up = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2];
+        let sky = Self::sky_colour(if sun_up.is_finite() { sun_up } else { 0.0 });
+        [
+            space[0] + (sky[0] - space[0]) * density,
+            space[1] + (sky[1] - space[1]) * density,
+            space[2] + (sky[2] - space[2]) * density,
+            space[3],
+        ]
+    }
 }
 
 static NEXT_TEXTURE_VERSION: AtomicU64 = AtomicU64::new(1);
@@ -842,7 +881,15 @@ impl Renderer {
             self.queue.write_buffer(&self.block_buf, 0, &uniforms);
         }
 
-        let c = self.settings.clear;
+        let c = match self.settings.atmosphere {
+            Some(a) => a.sky(
+                camera.position,
+                sun,
+                self.settings.radii,
+                self.settings.clear,
+            ),
+            None => self.settings.clear,
+        };
         let mut triangles = 0u64;
         {
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -953,6 +1000,43 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The background is the sky's colour at and under the surface (at the
+    /// poles on the polar radius, at the equator on the equatorial one),
+    /// fades with altitude, is space from 1000 Earth radii, and is finite
+    /// for every eye (the centre, non-finite positions).
+    #[test]
+    fn sky_fades_from_the_ground_to_space() {
+        let a = Atmosphere::EARTH;
+        let radii = [6_378_137.0, 6_356_752.3];
+        let space = [0.0, 0.0, 0.02, 1.0];
+        let sun = [1.0, 0.0, 0.0];
+        let sky = Atmosphere::sky_colour(1.0);
+        let at = |p: [f64; 3]| a.sky(p, sun, radii, space);
+        let close = |c: [f64; 4], e: [f64; 3]| (0..3).all(|k| (c[k] - e[k]).abs() < 1e-3);
+        // Equator, sun overhead, 1 m up and inside the planet.
+        assert!(close(at([radii[0] + 1.0, 0.0, 0.0]), sky));
+        assert!(close(at([1000.0, 0.0, 0.0]), sky));
+        // North pole: altitude above the polar radius (the equatorial one
+        // would put an eye 20 km up still 1.4 km under the ground, in full
+        // sky).
+        let pole = at([0.0, 0.0, radii[1] + 10.0]);
+        assert!(close(pole, Atmosphere::sky_colour(0.0)), "{pole:?}");
+        let high = at([0.0, 0.0, radii[1] + 20_000.0]);
+        assert!(high[2] < 0.5 * Atmosphere::sky_colour(0.0)[2], "{high:?}");
+        // Monotone with altitude, space far out.
+        let mut last = f64::INFINITY;
+        for h in [0.0, 1e3, 1e4, 1e5, 1e6, 6.4e9] {
+            let c = at([radii[0] + h, 0.0, 0.0]);
+            assert!(c.iter().all(|v| v.is_finite()));
+            assert!(c[2] <= last + 1e-12, "not monotone at {h}");
+            last = c[2];
+        }
+        assert!(close(at([6.4e9, 0.0, 0.0]), [space[0], space[1], space[2]]));
+        assert_eq!(at([0.0, 0.0, 0.0]), space);
+        assert_eq!(at([f64::NAN, 0.0, 0.0]), space);
+        assert_eq!(at([f64::INFINITY, 0.0, 0.0]), space);
+    }
 
     #[test]
     fn projection_round_trips_depth() {

@@ -79,6 +79,8 @@ fn aerial(c: vec3<f32>, rel: vec3<f32>, alt: f32) -> vec3<f32> {
     let tau = exp(-h / g.atmos.x) * path / g.atmos.y;
     let haze = 1.0 - exp(-tau);
     let sun_up = clamp(dot(up, g.sun.xyz), 0.0, 1.0);
+    // The sky's colour: render.rs `Atmosphere::sky_colour`, which also
+    // clears the background inside the air (keep the two equal).
     let sky = vec3<f32>(0.50, 0.66, 0.90) * (0.2 + 0.8 * sun_up);
     return mix(c, sky, haze);
 }
