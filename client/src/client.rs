@@ -675,17 +675,25 @@ impl Client {
         // children's LOD 1 (thesis §3.3.2), so a record that arrived and let
         // the block split (a neighbour's constraint, or colour that refines
         // below the geometry) is drawn through its children.
-        let is_child = |c: &BlockId, b: &BlockId| c.parent().is_some_and(|p| p == *b);
-        let drawn_at_lod0 = |t: Tree, b: &BlockId| match t {
-            Tree::Elevation => draw
-                .iter()
-                .any(|d| (d.block == *b && d.lod == 0) || (d.lod == 1 && is_child(&d.block, b))),
-            Tree::Colour => draw.iter().any(|d| {
-                d.colour.is_some_and(|c| {
-                    (c.block == *b && c.lod == 0) || (c.lod == 1 && is_child(&c.block, b))
-                })
-            }),
-        };
+        // The blocks whose LOD 0 samples are drawn, per tree (built only in
+        // frames that have records to account for).
+        let mut drawn0: FastSet<(Tree, BlockId)> = FastSet::default();
+        if !self.not_drawn.is_empty() || !applied.is_empty() {
+            let lod0 = |b: BlockId, lod: u8| match lod {
+                0 => Some(b),
+                1 => b.parent(),
+                _ => None,
+            };
+            for d in &draw {
+                if let Some(b) = lod0(d.block, d.lod) {
+                    drawn0.insert((Tree::Elevation, b));
+                }
+                if let Some(b) = d.colour.and_then(|c| lod0(c.block, c.lod)) {
+                    drawn0.insert((Tree::Colour, b));
+                }
+            }
+        }
+        let drawn_at_lod0 = |t: Tree, b: &BlockId| drawn0.contains(&(t, *b));
         // Records applied earlier and drawn now.
         if !self.not_drawn.is_empty() {
             let tree = &self.tree;
