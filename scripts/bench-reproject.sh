@@ -21,6 +21,7 @@
 # samples / (user + sys). Prints a table and a JSON line.
 #
 # Usage: scripts/bench-reproject.sh [UP=4] [MB=1100] [MAX_LEVEL=15] [WORK=/tmp/bench-reproject]
+# (PLANET_BUILD=path picks the binary; default target/release/planet-build.)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 UP="${1:-4}"
@@ -28,7 +29,7 @@ MB="${2:-1100}"
 MAX_LEVEL="${3:-15}"
 WORK="${4:-/tmp/bench-reproject}"
 SRC=../shared/data/mt_rainier_90m.tif
-BIN=target/release/planet-build
+BIN="${PLANET_BUILD:-target/release/planet-build}"
 for t in gdal_translate gdalwarp gdalinfo python3 /usr/bin/time; do
   command -v "$t" >/dev/null || { echo "need $t (apt-get install gdal-bin python3 time)" >&2; exit 1; }
 done

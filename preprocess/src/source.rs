@@ -23,12 +23,15 @@
 //!   Fills are computed lazily, the first time a void of a raster is read,
 //!   and kept (sparse: only the void pixels). The transient memory of a fill
 //!   is about [`FILL_BYTES_PER_CELL`] bytes per window pixel and must fit
-//!   the layer's share of the memory budget: a raster that fits (an SRTM
+//!   a fill's share of the memory budget (half of the rasters' budget, the
+//!   chunk cache having the other half, divided among the fills that may
+//!   run at once: one per worker and layer): a raster that fits (an SRTM
 //!   tile of 1201² needs ~70 MB) is filled as a whole, so every void region
 //!   sees its whole border; a larger one is filled per square tile within a
 //!   window with a margin of a sixth of the window (the window's edge acts
 //!   as a mirror, so only voids wider than the margin see less than their
-//!   full border). One fill per layer runs at a time, bounding the peak.
+//!   full border). The harmonic fill is solved on the bounding box of a
+//!   window's voids and the pixels around it.
 //! - Colour comes from one RGB8 (or grey) raster, sampled bilinearly at texel
 //!   centres `(x·Wc + i + ½)/(Wc·2^L)`.
 
@@ -87,9 +90,10 @@ pub struct ElevationStack {
     /// Layers sorted by increasing level (coarse to fine).
     pub layers: Vec<Layer>,
     fills: Vec<FillCache>,
-    /// One fill computation per layer at a time (a fill of layer i only
-    /// reads fills of coarser layers, so these never wait in a cycle).
-    computing: Vec<Mutex<()>>,
+    /// Per layer, the fill computations that may run at once (one per
+    /// worker; a fill of layer i only reads fills of coarser layers, so
+    /// these never wait in a cycle).
+    computing: Vec<Permits>,
     /// Bytes a layer's fill window may take.
     fill_budget: usize,
     /// EGM96 undulation nodes shared by the layers.
@@ -176,12 +180,12 @@ impl ElevationStack {
         vertical: &[VerticalDatum],
         note: &mut dyn FnMut(String),
     ) -> Result<ElevationStack, GeoError> {
-        // One chunk cache for every layer, however many; a fill window
-        // gets the bound shared by the fills that can run at once (one per
-        // worker).
-        let cache = ChunkCache::new(cache_bytes.max(1 << 20));
-        let concurrent = paths.len().clamp(1, rayon::current_num_threads().max(1));
-        let per = (cache_bytes / concurrent).max(1 << 20);
+        // One chunk cache for every layer, however many, with half of the
+        // bound; a fill window gets the other half shared by the fills that
+        // can run at once (one per worker).
+        let cache = ChunkCache::new((cache_bytes / 2).max(1 << 20));
+        let concurrent = rayon::current_num_threads().max(1);
+        let per = (cache_bytes / 2 / concurrent).max(1 << 20);
         let mut layers = Vec::new();
         for (i, p) in paths.iter().enumerate() {
             let vertical = match vertical {
@@ -231,7 +235,7 @@ impl ElevationStack {
                 .unwrap_or(std::cmp::Ordering::Equal)
         });
         let fills = layers.iter().map(|_| Mutex::new(HashMap::new())).collect();
-        let computing = layers.iter().map(|_| Mutex::new(())).collect();
+        let computing = layers.iter().map(|_| Permits::new(concurrent)).collect();
         Ok(ElevationStack {
             index: LayerIndex::new(layers.iter().map(|l| &l.tiff)),
             layers,
@@ -488,6 +492,40 @@ impl<'a> StackReader<'a> {
     }
 }
 
+/// A counting semaphore (std has none): at most `n` holders at once.
+struct Permits {
+    free: Mutex<usize>,
+    freed: parking_lot::Condvar,
+}
+
+/// A held [`Permits`] permit, given back when dropped.
+struct Permit<'a>(&'a Permits);
+
+impl Permits {
+    fn new(n: usize) -> Permits {
+        Permits {
+            free: Mutex::new(n.max(1)),
+            freed: parking_lot::Condvar::new(),
+        }
+    }
+
+    fn acquire(&self) -> Permit<'_> {
+        let mut free = self.free.lock();
+        while *free == 0 {
+            self.freed.wait(&mut free);
+        }
+        *free -= 1;
+        Permit(self)
+    }
+}
+
+impl Drop for Permit<'_> {
+    fn drop(&mut self) {
+        *self.0.free.lock() += 1;
+        self.0.freed.notify_one();
+    }
+}
+
 /// Bilinear interpolation of pixels `v` (`(c0, r0)`, `(c0+1, r0)`,
 /// `(c0, r0+1)`, `(c0+1, r0+1)`) at fractions `(fc, fr)` from the first.
 #[inline]
@@ -595,7 +633,7 @@ impl ElevationStack {
         if let Some(tb) = &*slot {
             return Ok(tb.clone());
         }
-        let _one = self.computing[idx].lock();
+        let _permit = self.computing[idx].acquire();
         let tb = Arc::new(self.compute_fill(idx, whole, key, tile, margin)?);
         *slot = Some(tb.clone());
         Ok(tb)
@@ -639,19 +677,16 @@ impl ElevationStack {
         };
         let (w, h) = ((c1 - c0) as usize, (r1 - r0) as usize);
         let mut rd = self.reader();
-        let mut raw = vec![0f64; w * h];
+        let mut raw = Vec::new();
         if c0 >= 0 && c1 <= w_all {
-            let mut buf = Vec::new();
             rd.rd(idx)
-                .window((c0 as u32, r0 as u32), (w as u32, h as u32), &mut buf)?;
-            for (r, v) in raw.iter_mut().zip(&buf) {
-                *r = *v as f64;
-            }
+                .window((c0 as u32, r0 as u32), (w as u32, h as u32), &mut raw)?;
         } else {
             // Columns wrap (a global raster's window across the antimeridian).
+            raw.resize(w * h, 0.0);
             for y in 0..h {
                 for x in 0..w {
-                    raw[y * w + x] = rd.rd(idx).elevation(c0 + x as i64, r0 + y as i64)? as f64;
+                    raw[y * w + x] = rd.rd(idx).elevation(c0 + x as i64, r0 + y as i64)?;
                 }
             }
         }
@@ -700,7 +735,7 @@ impl ElevationStack {
                         .unwrap_or(0.0);
                     base[si] = b;
                     if border {
-                        delta[si] = raw[i] - b;
+                        delta[si] = raw[i] as f64 - b;
                     }
                 }
             }
