@@ -221,6 +221,11 @@ pub struct GeoTiff {
     /// re-projected footprint (the corners `gdalwarp` pads), not a void to
     /// fill: points there are not covered.
     spans: Option<Vec<(u32, u32)>>,
+    /// The TIFF image (IFD) read: 0, or an overview's.
+    image: usize,
+    /// Reduced-resolution images of a TIFF (a Cloud-Optimized GeoTIFF's
+    /// overviews): IFD index, width and height, finest first.
+    overviews: Vec<(usize, u32, u32)>,
     chunk_w: u32,
     chunk_h: u32,
     chunks_across: u32,
@@ -358,6 +363,9 @@ impl BoxTest {
 /// (gdalwarp's default `-et`).
 pub const APPROX_ERROR_PX: f64 = 0.125;
 
+/// TIFF images (IFDs) looked at for overviews.
+const MAX_IMAGES: usize = 32;
+
 /// Rows per chunk of an `.hgt` file.
 const HGT_CHUNK_ROWS: u32 = 64;
 
@@ -458,7 +466,30 @@ impl GeoTiff {
         if chunk_w == 0 || chunk_h == 0 {
             return Err(terr(path, "zero chunk dimensions"));
         }
-        GeoTiff::assemble(
+        // Overviews: the reduced-resolution images (NewSubfileType bit 0,
+        // not masks, bit 2) after the first, as a COG holds them.
+        let mut overviews = Vec::new();
+        let mut ifd = 0;
+        while dec.more_images() && ifd < MAX_IMAGES {
+            ifd += 1;
+            if dec.next_image().is_err() {
+                break;
+            }
+            let sub = dec
+                .find_tag_unsigned::<u32>(Tag::NewSubfileType)
+                .ok()
+                .flatten()
+                .unwrap_or(0);
+            if let (1, 0, Ok((w, h))) = (sub & 1, sub & 4, dec.dimensions()) {
+                if w > 0 && h > 0 && w < width && h <= height {
+                    overviews.push((ifd, w, h));
+                }
+            }
+        }
+        if ifd > 0 {
+            dec.seek_to_image(0).map_err(|e| terr(path, e))?;
+        }
+        let mut t = GeoTiff::assemble(
             path,
             (width, height, kind),
             (x0, y0, dx, dy),
@@ -473,7 +504,70 @@ impl GeoTiff {
                 Vec::new()
             })),
             cache_bytes,
-        )
+        )?;
+        t.overviews = overviews;
+        Ok(t)
+    }
+
+    /// The raster's overviews (COG reduced-resolution images): IFD index,
+    /// width and height, finest first.
+    pub fn overviews(&self) -> &[(usize, u32, u32)] {
+        &self.overviews
+    }
+
+    /// Overview `k` of [`GeoTiff::overviews`] as a raster of its own: the
+    /// same CRS, extent (the outer edges of the edge pixels) and samples'
+    /// meaning, coarser pixels, chunks in the same cache.
+    pub fn overview(&self, k: usize) -> Result<GeoTiff, GeoError> {
+        let &(image, w, h) = self
+            .overviews
+            .get(k)
+            .ok_or_else(|| terr(&self.path, format!("no overview {k}")))?;
+        let mut dec = self.open_decoder()?;
+        dec.seek_to_image(image).map_err(|e| terr(&self.path, e))?;
+        let (chunk_w, chunk_h) = dec.chunk_dimensions();
+        if chunk_w == 0 || chunk_h == 0 {
+            return Err(terr(&self.path, "zero chunk dimensions in an overview"));
+        }
+        let (dx, dy) = (
+            self.dx * self.width as f64 / w as f64,
+            self.dy * self.height as f64 / h as f64,
+        );
+        let (x0, y0) = (
+            self.x0 - 0.5 * self.dx + 0.5 * dx,
+            self.y0 + 0.5 * self.dy - 0.5 * dy,
+        );
+        let crs =
+            Crs::from_definition(&self.crs.definition, self.crs.name.clone()).map_err(|what| {
+                GeoError::WrongCrs {
+                    path: self.path.clone(),
+                    what,
+                }
+            })?;
+        let mut t = GeoTiff::assemble(
+            &self.path,
+            (w, h, self.kind),
+            (x0, y0, dx, dy),
+            self.nodata,
+            self.pixel_is_point,
+            crs,
+            self.vertical,
+            (chunk_w, chunk_h),
+            Backend::Tiff(Mutex::new(Vec::new())),
+            self.cache.clone(),
+        )?;
+        t.image = image;
+        if self.cache.keep_decoder() {
+            if let Backend::Tiff(d) = &t.backend {
+                d.lock().push(dec);
+            }
+        }
+        Ok(t)
+    }
+
+    /// The TIFF image (IFD) this raster reads: 0, or an overview's.
+    pub fn image(&self) -> usize {
+        self.image
     }
 
     /// Open an SRTM `.hgt` file: `n × n` big-endian int16 heights (n = 1201
@@ -562,6 +656,8 @@ impl GeoTiff {
             outline: std::sync::OnceLock::new(),
             spacing_m: 0.0,
             spans: None,
+            image: 0,
+            overviews: Vec::new(),
             chunk_w,
             chunk_h,
             chunks_across,
@@ -1091,9 +1187,14 @@ impl GeoTiff {
             path: self.path.clone(),
             source: e,
         })?;
-        Ok(Decoder::new(BufReader::new(file))
+        let mut dec = Decoder::new(BufReader::new(file))
             .map_err(|e| terr(&self.path, e))?
-            .with_limits(limits()))
+            .with_limits(limits());
+        if self.image > 0 {
+            dec.seek_to_image(self.image)
+                .map_err(|e| terr(&self.path, e))?;
+        }
+        Ok(dec)
     }
 
     /// A reader with its own small memo of recently used chunks, so that
@@ -1308,7 +1409,8 @@ pub const MAX_SIDE: u32 = 1 << 24;
 
 /// What the `raster_readers` fuzz target and its replay test run on
 /// untrusted bytes at `path`: open the raster with a 1 MiB chunk cache,
-/// map its corners and centre through its CRS and read those pixels.
+/// map its corners and centre through its CRS and read those pixels, and
+/// read a pixel of its coarsest overview.
 pub fn probe(path: &Path) -> Result<(), GeoError> {
     let t = GeoTiff::open(path, 1 << 20)?;
     let (w, h) = (t.width as i64, t.height as i64);
@@ -1328,6 +1430,15 @@ pub fn probe(path: &Path) -> Result<(), GeoError> {
             t.elevation(c, r)?;
         } else {
             t.colour(c, r)?;
+        }
+    }
+    // The coarsest overview (COG), georeferenced from the full image.
+    if let Some(k) = t.overviews().len().checked_sub(1) {
+        let o = t.overview(k)?;
+        if o.kind.is_elevation() {
+            o.elevation(0, 0)?;
+        } else {
+            o.colour(0, 0)?;
         }
     }
     Ok(())

@@ -108,9 +108,20 @@ pub fn open_rasters_noting(
         let geoid = geoid::EGM96_FIXED_BYTES + threads * geoid::EGM96_THREAD_BYTES;
         cache = cache.saturating_sub(geoid).max(cache / 4);
     }
-    let stack = source::ElevationStack::open_with(elevation, cache * 3 / 4, &opts.vertical, note)?;
+    let stack = source::ElevationStack::open_capped(
+        elevation,
+        cache * 3 / 4,
+        &opts.vertical,
+        opts.max_level,
+        note,
+    )?;
     let colour = match colour {
-        Some(p) => Some(source::ColourSource::open(p, cache / 4)?),
+        Some(p) => Some(source::ColourSource::open_capped(
+            p,
+            cache / 4,
+            opts.max_level,
+            note,
+        )?),
         None => None,
     };
     let datum = source::check_same_datum(

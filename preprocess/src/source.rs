@@ -131,6 +131,40 @@ pub fn vertical_datum_of(
     )
 }
 
+/// `t`, or its coarsest overview whose level (for blocks `w` samples wide)
+/// is still at least `max_level` where `t` itself is finer than that.
+pub fn overview_for(
+    t: GeoTiff,
+    max_level: u8,
+    w: usize,
+    note: &mut dyn FnMut(String),
+) -> Result<GeoTiff, GeoError> {
+    let full = level_for(t.cells_per_quarter(), w);
+    if full <= max_level {
+        return Ok(t);
+    }
+    for k in (0..t.overviews().len()).rev() {
+        let (_, ow, oh) = t.overviews()[k];
+        let estimate = t.cells_per_quarter() * ow as f64 / t.width as f64;
+        if level_for(estimate, w) < max_level {
+            continue;
+        }
+        let ov = t.overview(k)?;
+        let level = level_for(ov.cells_per_quarter(), w);
+        if level >= max_level {
+            note(format!(
+                "{}: overview {ow} × {oh} (level {level}) read for a tree of level {max_level} \
+                 (the full {} × {} raster is level {full})",
+                t.path().display(),
+                t.width,
+                t.height
+            ));
+            return Ok(ov);
+        }
+    }
+    Ok(t)
+}
+
 /// Check that every raster lies on the same surface; the error names the
 /// first two that differ.
 pub fn check_same_datum<'a>(
@@ -180,6 +214,20 @@ impl ElevationStack {
         vertical: &[VerticalDatum],
         note: &mut dyn FnMut(String),
     ) -> Result<ElevationStack, GeoError> {
+        ElevationStack::open_capped(paths, cache_bytes, vertical, u8::MAX, note)
+    }
+
+    /// [`ElevationStack::open_with`] for a tree no deeper than `max_level`:
+    /// a raster finer than that level is read from its coarsest overview
+    /// (Cloud-Optimized GeoTIFF) still at least as fine, and `note` says
+    /// which.
+    pub fn open_capped(
+        paths: &[&Path],
+        cache_bytes: usize,
+        vertical: &[VerticalDatum],
+        max_level: u8,
+        note: &mut dyn FnMut(String),
+    ) -> Result<ElevationStack, GeoError> {
         // One chunk cache for every layer, however many, with half of the
         // bound; a fill window gets the other half shared by the fills that
         // can run at once (one per worker).
@@ -193,7 +241,12 @@ impl ElevationStack {
                 [one] => Some(*one),
                 many => many.get(i).copied(),
             };
-            let tiff = GeoTiff::open_in(p, &cache)?;
+            let tiff = overview_for(
+                GeoTiff::open_in(p, &cache)?,
+                max_level,
+                ELEVATION_WIDTH,
+                note,
+            )?;
             if !tiff.kind.is_elevation() {
                 return Err(GeoError::Role {
                     path: p.to_path_buf(),
@@ -831,7 +884,19 @@ pub struct ColourSource {
 impl ColourSource {
     /// Open a colour raster.
     pub fn open(path: &Path, cache_bytes: usize) -> Result<ColourSource, GeoError> {
+        ColourSource::open_capped(path, cache_bytes, u8::MAX, &mut |_| {})
+    }
+
+    /// [`ColourSource::open`] for a tree no deeper than `max_level` (a
+    /// finer raster's overview, as [`overview_for`]).
+    pub fn open_capped(
+        path: &Path,
+        cache_bytes: usize,
+        max_level: u8,
+        note: &mut dyn FnMut(String),
+    ) -> Result<ColourSource, GeoError> {
         let tiff = GeoTiff::open(path, cache_bytes.max(1 << 20))?;
+        let tiff = overview_for(tiff, max_level, COLOUR_WIDTH, note)?;
         if tiff.kind.is_elevation() {
             return Err(GeoError::Role {
                 path: path.to_path_buf(),

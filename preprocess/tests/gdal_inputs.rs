@@ -782,3 +782,94 @@ fn a_directory_of_many_tiles_builds_like_the_whole_tile() {
     }
     planet_preprocess::db::verify(&db).unwrap();
 }
+
+/// A Cloud-Optimized GeoTIFF (`gdal_translate -of COG`: 256² tiles, LZW,
+/// overviews 600², 300², 150²) reads pixel for pixel like the tile it was
+/// made from; a tree as deep as the tile reads the full image, and one
+/// capped two levels above it reads the 300² overview (said in a note),
+/// whose every leaf grid equals the one built from that overview extracted
+/// by GDAL itself (`gdal_translate -ovr 1`).
+#[test]
+fn cog_overviews_serve_coarser_trees() {
+    use planet_preprocess::build::GridSource;
+    use planet_preprocess::source::ELEVATION_WIDTH;
+    let Some(rainier) = rainier() else {
+        eprintln!("note: ../shared/data not found, test skipped");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cog = dir.path().join("rainier-cog.tif");
+    let ovr = dir.path().join("rainier-ovr1.tif");
+    tool(
+        "gdal_translate",
+        &[
+            "-q",
+            "-of",
+            "COG",
+            "-co",
+            "BLOCKSIZE=256",
+            s(&rainier),
+            s(&cog),
+        ],
+        "",
+    );
+    tool("gdal_translate", &["-q", "-ovr", "1", s(&cog), s(&ovr)], "");
+    let plain = GeoTiff::open(&rainier, 64 << 20).unwrap();
+    let tiled = GeoTiff::open(&cog, 64 << 20).unwrap();
+    let sizes: Vec<(u32, u32)> = tiled.overviews().iter().map(|o| (o.1, o.2)).collect();
+    assert_eq!(sizes, vec![(600, 600), (300, 300), (150, 150)]);
+    for r in 0..plain.height as i64 {
+        for c in 0..plain.width as i64 {
+            let (a, b) = (
+                plain.elevation(c, r).unwrap(),
+                tiled.elevation(c, r).unwrap(),
+            );
+            assert!(
+                a == b || (a.is_nan() && b.is_nan()),
+                "pixel ({c}, {r}): {a} vs {b}"
+            );
+        }
+    }
+    let open = |p: &Path, max_level: u8, notes: &mut Vec<String>| {
+        planet_preprocess::open_rasters_noting(
+            &[p],
+            None,
+            &RasterOptions {
+                max_level,
+                vertical: vec![VerticalDatum::Ellipsoid],
+                ..Default::default()
+            },
+            &mut |n| notes.push(n),
+        )
+        .unwrap()
+    };
+    let mut notes = Vec::new();
+    let (full, _) = open(&cog, 16, &mut notes);
+    assert_eq!(full.elevation.layers[0].tiff.width, 1201);
+    assert!(notes.iter().all(|n| !n.contains("overview")), "{notes:?}");
+    let (capped, plan) = open(&cog, 9, &mut notes);
+    let (extracted, plan_x) = open(&ovr, 9, &mut Vec::new());
+    let t = &capped.elevation.layers[0].tiff;
+    assert_eq!((t.width, t.height, t.image()), (300, 300, 2));
+    assert!(
+        notes.iter().any(|n| n.contains("overview 300 × 300")),
+        "{notes:?}"
+    );
+    let leaves = |p: &planet_preprocess::plan::Plan| match p {
+        planet_preprocess::plan::Plan::Explicit { split, .. } => {
+            let mut l = planet_preprocess::plan::leaves(split);
+            l.sort();
+            l
+        }
+        _ => panic!("raster plans are explicit"),
+    };
+    assert_eq!(plan.max_level(), 9);
+    assert_eq!(leaves(&plan), leaves(&plan_x));
+    let w = ELEVATION_WIDTH;
+    let (mut a, mut b) = (vec![0i16; (w + 1) * (w + 1)], vec![0i16; (w + 1) * (w + 1)]);
+    for blk in leaves(&plan).into_iter().filter(|b| b.level == 9) {
+        capped.elevation_leaf(blk, &mut a).unwrap();
+        extracted.elevation_leaf(blk, &mut b).unwrap();
+        assert_eq!(a, b, "{blk:?}");
+    }
+}
