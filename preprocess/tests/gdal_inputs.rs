@@ -627,6 +627,18 @@ fn projection_families_map_like_proj() {
     }
 }
 
+/// The leaves of a raster plan's elevation tree, sorted.
+fn sorted_leaves(p: &planet_preprocess::plan::Plan) -> Vec<planet_core::BlockId> {
+    match p {
+        planet_preprocess::plan::Plan::Explicit { split, .. } => {
+            let mut l = planet_preprocess::plan::leaves(split);
+            l.sort();
+            l
+        }
+        _ => panic!("raster plans are explicit"),
+    }
+}
+
 /// Open file descriptors of this process (Linux), if readable.
 fn open_fds() -> Option<usize> {
     std::fs::read_dir("/proc/self/fd").ok().map(|d| d.count())
@@ -691,21 +703,13 @@ fn a_directory_of_many_tiles_builds_like_the_whole_tile() {
     stack.extend(tile_paths.iter().map(|p| p.as_path()));
     let (tiled, tiled_plan) = planet_preprocess::open_rasters(&stack, None, &opts).unwrap();
     assert_eq!(tiled.elevation.layers.len(), n * n + 1);
-    let leaves = |p: &planet_preprocess::plan::Plan| match p {
-        planet_preprocess::plan::Plan::Explicit { split, .. } => {
-            let mut l = planet_preprocess::plan::leaves(split);
-            l.sort();
-            l
-        }
-        _ => panic!("raster plans are explicit"),
-    };
-    let deepest: Vec<_> = leaves(&whole_plan)
+    let deepest: Vec<_> = sorted_leaves(&whole_plan)
         .into_iter()
         .filter(|b| b.level == whole_plan.max_level())
         .collect();
     assert_eq!(
-        leaves(&whole_plan),
-        leaves(&tiled_plan),
+        sorted_leaves(&whole_plan),
+        sorted_leaves(&tiled_plan),
         "tree shapes differ"
     );
     let w = ELEVATION_WIDTH;
@@ -855,19 +859,11 @@ fn cog_overviews_serve_coarser_trees() {
         notes.iter().any(|n| n.contains("overview 300 × 300")),
         "{notes:?}"
     );
-    let leaves = |p: &planet_preprocess::plan::Plan| match p {
-        planet_preprocess::plan::Plan::Explicit { split, .. } => {
-            let mut l = planet_preprocess::plan::leaves(split);
-            l.sort();
-            l
-        }
-        _ => panic!("raster plans are explicit"),
-    };
     assert_eq!(plan.max_level(), 9);
-    assert_eq!(leaves(&plan), leaves(&plan_x));
+    assert_eq!(sorted_leaves(&plan), sorted_leaves(&plan_x));
     let w = ELEVATION_WIDTH;
     let (mut a, mut b) = (vec![0i16; (w + 1) * (w + 1)], vec![0i16; (w + 1) * (w + 1)]);
-    for blk in leaves(&plan).into_iter().filter(|b| b.level == 9) {
+    for blk in sorted_leaves(&plan).into_iter().filter(|b| b.level == 9) {
         capped.elevation_leaf(blk, &mut a).unwrap();
         extracted.elevation_leaf(blk, &mut b).unwrap();
         assert_eq!(a, b, "{blk:?}");
