@@ -737,6 +737,26 @@ fn a_directory_of_many_tiles_builds_like_the_whole_tile() {
         }
     }
     assert!(compared > 500_000, "{compared} samples compared");
+    // Point samples (the index's point queries) agree too.
+    let (la0, la1, lo0, lo1) = src.bounds();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(16);
+    let mut points = 0;
+    for _ in 0..3000 {
+        let (la, lo) = (rng.random_range(la0..la1), rng.random_range(lo0..lo1));
+        let (c, r) = src.pixel_of(la, lo);
+        let (c0, r0) = (c.floor() as i64, r.floor() as i64);
+        if (0..2).all(|dy| (0..2).all(|dx| !src.elevation(c0 + dx, r0 + dy).unwrap().is_nan())) {
+            let (x, y) = (
+                whole.elevation.sample(la, lo).unwrap(),
+                tiled.elevation.sample(la, lo).unwrap(),
+            );
+            // The same 4 pixels; the fractions differ by rounding only
+            // (pixel coordinates taken from another tile's origin).
+            assert!((x - y).abs() < 1e-6, "point {la} {lo}: {x} vs {y}");
+            points += 1;
+        }
+    }
+    assert!(points > 2500, "{points}");
     eprintln!(
         "{same} of {compared} void-free samples equal over {} leaves",
         deepest.len()
