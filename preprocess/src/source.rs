@@ -21,11 +21,13 @@
 //!   where the coarse value is 1000 m off (a 0.5° ETOPO5 cell at a summit).
 //!
 //!   Fills are computed lazily, the first time a void of a raster is read,
-//!   and kept (sparse: only the void pixels). The transient memory of a fill
+//!   and kept within a bound (sparse: only the void pixels). The transient memory of a fill
 //!   is about [`FILL_BYTES_PER_CELL`] bytes per window pixel and must fit
 //!   a fill's share of the memory budget (half of the rasters' budget, the
 //!   chunk cache having the other half, divided among the fills that may
-//!   run at once: one per worker and layer): a raster that fits (an SRTM
+//!   run at once, one per worker and layer, and the fill tables kept, which
+//!   are evicted least recently used first and computed again if needed
+//!   again): a raster that fits (an SRTM
 //!   tile of 1201² needs ~70 MB) is filled as a whole, so every void region
 //!   sees its whole border; a larger one is filled per square tile within a
 //!   window with a margin of a sixth of the window (the window's edge acts
@@ -50,6 +52,16 @@ use std::sync::Arc;
 
 /// Transient bytes per window pixel of a void fill (grids and pyramid).
 pub const FILL_BYTES_PER_CELL: usize = 48;
+
+/// Bytes a kept fill table takes per void pixel (a hash map of u64 to f64
+/// with its control bytes and spare capacity).
+pub const FILL_TABLE_BYTES_PER_VOID: usize = 40;
+
+/// Fill tables kept: `(layer, window)` by use, with their bytes.
+struct KeptFills {
+    lru: lru::LruCache<(usize, (u32, u32)), usize>,
+    bytes: usize,
+}
 
 /// Filled values (metres) of the void pixels of one fill window, by
 /// `row · width + col` of the raster.
@@ -90,6 +102,11 @@ pub struct ElevationStack {
     /// Layers sorted by increasing level (coarse to fine).
     pub layers: Vec<Layer>,
     fills: Vec<FillCache>,
+    /// The fill tables kept (by layer and window), least recently used
+    /// first out once their bytes pass `fill_budget`: the voids of
+    /// thousands of tiles stay within the memory bound, a table evicted is
+    /// computed again (the same) if needed again.
+    kept: Mutex<KeptFills>,
     /// Per layer, the fill computations that may run at once (one per
     /// worker; a fill of layer i only reads fills of coarser layers, so
     /// these never wait in a cycle).
@@ -229,11 +246,11 @@ impl ElevationStack {
         note: &mut dyn FnMut(String),
     ) -> Result<ElevationStack, GeoError> {
         // One chunk cache for every layer, however many, with half of the
-        // bound; a fill window gets the other half shared by the fills that
-        // can run at once (one per worker).
+        // bound; the other half is shared by the fills that can run at once
+        // (one window per worker) and the fill tables kept.
         let cache = ChunkCache::new((cache_bytes / 2).max(1 << 20));
         let concurrent = rayon::current_num_threads().max(1);
-        let per = (cache_bytes / 2 / concurrent).max(1 << 20);
+        let per = (cache_bytes / 2 / (concurrent + 1)).max(1 << 20);
         let mut layers = Vec::new();
         for (i, p) in paths.iter().enumerate() {
             let vertical = match vertical {
@@ -293,6 +310,10 @@ impl ElevationStack {
             index: LayerIndex::new(layers.iter().map(|l| &l.tiff)),
             layers,
             fills,
+            kept: Mutex::new(KeptFills {
+                lru: lru::LruCache::unbounded(),
+                bytes: 0,
+            }),
             computing,
             fill_budget: per,
             geoid: Egm96Grid::new(),
@@ -684,12 +705,40 @@ impl ElevationStack {
         let slot = self.fills[idx].lock().entry(key).or_default().clone();
         let mut slot = slot.lock();
         if let Some(tb) = &*slot {
+            self.kept.lock().lru.promote(&(idx, key));
             return Ok(tb.clone());
         }
-        let _permit = self.computing[idx].acquire();
+        let permit = self.computing[idx].acquire();
         let tb = Arc::new(self.compute_fill(idx, whole, key, tile, margin)?);
+        drop(permit);
         *slot = Some(tb.clone());
+        drop(slot);
+        self.keep(idx, key, tb.len() * FILL_TABLE_BYTES_PER_VOID);
         Ok(tb)
+    }
+
+    /// Count a new fill table in the kept set and evict the least recently
+    /// used ones over the budget (never the newest).
+    fn keep(&self, idx: usize, key: (u32, u32), bytes: usize) {
+        let mut k = self.kept.lock();
+        if let Some(old) = k.lru.put((idx, key), bytes) {
+            k.bytes -= old;
+        }
+        k.bytes += bytes;
+        while k.bytes > self.fill_budget && k.lru.len() > 1 {
+            match k.lru.pop_lru() {
+                Some(((l, old_key), b)) => {
+                    k.bytes -= b;
+                    self.fills[l].lock().remove(&old_key);
+                }
+                None => break,
+            }
+        }
+    }
+
+    /// Bytes of the fill tables kept now.
+    pub fn kept_fill_bytes(&self) -> usize {
+        self.kept.lock().bytes
     }
 
     /// Delta surface fill of one window of layer `idx` (see the module
