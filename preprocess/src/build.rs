@@ -555,26 +555,23 @@ mod tests {
 
     #[test]
     fn lod_error_matches_its_definition() {
-        // max |sample − mean of its LOD 1 neighbours|, written directly.
+        // The definition: max |LOD 0 − bilinear(LOD 1)|, the LOD 1 grid
+        // being every other sample, interpolated within its 2 × 2 cells.
         let reference = |full: &[i16], w: usize| -> f64 {
             let side = w + 1;
             let at = |i: usize, j: usize| full[j * side + i] as f64;
             let mut e = 0f64;
             for j in 0..side {
                 for i in 0..side {
-                    let p = match (i % 2, j % 2) {
-                        (0, 0) => continue,
-                        (1, 0) => (at(i - 1, j) + at(i + 1, j)) / 2.0,
-                        (0, 1) => (at(i, j - 1) + at(i, j + 1)) / 2.0,
-                        _ => {
-                            (at(i - 1, j - 1)
-                                + at(i + 1, j - 1)
-                                + at(i - 1, j + 1)
-                                + at(i + 1, j + 1))
-                                / 4.0
-                        }
-                    };
-                    e = e.max((at(i, j) - p).abs());
+                    let (i0, j0) = ((i / 2 * 2).min(w - 2), (j / 2 * 2).min(w - 2));
+                    let v = [
+                        at(i0, j0),
+                        at(i0 + 2, j0),
+                        at(i0, j0 + 2),
+                        at(i0 + 2, j0 + 2),
+                    ];
+                    let (fc, fr) = ((i - i0) as f64 / 2.0, (j - j0) as f64 / 2.0);
+                    e = e.max((at(i, j) - crate::source::bilinear(v, fc, fr)).abs());
                 }
             }
             e
