@@ -257,24 +257,35 @@ impl Ctx<'_> {
 /// Geometric error of rendering a full elevation grid at its first LOD:
 /// max |LOD 0 − bilinear(LOD 1)| in stored units.
 pub fn elevation_lod_error(full: &[i16], w: usize) -> f64 {
+    // In quarter units (exact integers): edge middles are |2x − a − b| / 2,
+    // cell centres |4x − (sum of 4 corners)| / 4.
     let side = w + 1;
-    let at = |i: usize, j: usize| full[j * side + i] as f64;
-    let mut e = 0f64;
+    let row = |j: usize| &full[j * side..(j + 1) * side];
+    let mut e4 = 0i32;
     for j in 0..side {
-        for i in 0..side {
-            let p = match (i % 2, j % 2) {
-                (0, 0) => continue,
-                (1, 0) => (at(i - 1, j) + at(i + 1, j)) / 2.0,
-                (0, 1) => (at(i, j - 1) + at(i, j + 1)) / 2.0,
-                _ => {
-                    (at(i - 1, j - 1) + at(i + 1, j - 1) + at(i - 1, j + 1) + at(i + 1, j + 1))
-                        / 4.0
-                }
-            };
-            e = e.max((at(i, j) - p).abs());
+        let r = row(j);
+        if j % 2 == 0 {
+            for i in (1..side - 1).step_by(2) {
+                let d = 2 * r[i] as i32 - (r[i - 1] as i32 + r[i + 1] as i32);
+                e4 = e4.max(2 * d.abs());
+            }
+        } else {
+            let (up, down) = (row(j - 1), row(j + 1));
+            for i in (0..side).step_by(2) {
+                let d = 2 * r[i] as i32 - (up[i] as i32 + down[i] as i32);
+                e4 = e4.max(2 * d.abs());
+            }
+            for i in (1..side - 1).step_by(2) {
+                let d = 4 * r[i] as i32
+                    - (up[i - 1] as i32
+                        + up[i + 1] as i32
+                        + down[i - 1] as i32
+                        + down[i + 1] as i32);
+                e4 = e4.max(d.abs());
+            }
         }
     }
-    e
+    e4 as f64 / 4.0
 }
 
 /// Colour error of rendering a block at its filtered first LOD: max channel
@@ -541,6 +552,52 @@ fn build_inner(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lod_error_matches_its_definition() {
+        // The definition: max |LOD 0 − bilinear(LOD 1)|, the LOD 1 grid
+        // being every other sample, interpolated within its 2 × 2 cells.
+        let reference = |full: &[i16], w: usize| -> f64 {
+            let side = w + 1;
+            let at = |i: usize, j: usize| full[j * side + i] as f64;
+            let mut e = 0f64;
+            for j in 0..side {
+                for i in 0..side {
+                    let (i0, j0) = ((i / 2 * 2).min(w - 2), (j / 2 * 2).min(w - 2));
+                    let v = [
+                        at(i0, j0),
+                        at(i0 + 2, j0),
+                        at(i0, j0 + 2),
+                        at(i0 + 2, j0 + 2),
+                    ];
+                    let (fc, fr) = ((i - i0) as f64 / 2.0, (j - j0) as f64 / 2.0);
+                    e = e.max((at(i, j) - crate::source::bilinear(v, fc, fr)).abs());
+                }
+            }
+            e
+        };
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        for round in 0..200 {
+            let w = 64;
+            let amp = [1, 7, 300, 32767][round % 4];
+            let full: Vec<i16> = (0..(w + 1) * (w + 1))
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    ((x % (2 * amp as u64 + 1)) as i64 - amp) as i16
+                })
+                .collect();
+            assert_eq!(elevation_lod_error(&full, w), reference(&full, w));
+        }
+        // One odd sample out of a flat grid, at a cell centre and an edge middle.
+        let mut flat = vec![5i16; 65 * 65];
+        flat[65 + 1] = 9;
+        assert_eq!(elevation_lod_error(&flat, 64), 4.0);
+        flat[65 + 1] = 5;
+        flat[2 * 65 + 1] = 3;
+        assert_eq!(elevation_lod_error(&flat, 64), 2.0);
+    }
 
     #[test]
     fn memory_bound_caps_threads() {

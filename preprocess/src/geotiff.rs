@@ -17,7 +17,6 @@ use crate::crs::{Crs, GeoKeys};
 use crate::error::GeoError;
 use crate::geoid::VerticalDatum;
 use parking_lot::Mutex;
-use std::collections::HashMap;
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
@@ -62,7 +61,7 @@ enum Chunk {
     Rgb(Vec<[u8; 3]>),
 }
 
-/// A cheap hasher for chunk indices (SipHash showed up at 14 % of a build).
+/// A cheap hasher for chunk keys (SipHash showed up at 14 % of a build).
 #[derive(Default, Clone, Copy)]
 struct IdxHasher(u64);
 
@@ -75,17 +74,97 @@ impl std::hash::Hasher for IdxHasher {
             self.0 = (self.0.rotate_left(8) ^ b as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
         }
     }
-    fn write_u32(&mut self, v: u32) {
-        self.0 = (v as u64 ^ self.0).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (v ^ (v >> 29) ^ self.0).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     }
 }
 
 type IdxBuild = std::hash::BuildHasherDefault<IdxHasher>;
 
-struct Cache {
-    map: HashMap<u32, (Arc<Chunk>, u64), IdxBuild>,
-    stamp: u64,
+/// Decoded chunks of any number of rasters (keyed by raster and chunk),
+/// bounded in bytes, least recently used out (the `lru` crate's list: an
+/// eviction is O(1) however many chunks of however many tiles it holds),
+/// and a bound on the TIFF decoders (open files) the rasters keep idle
+/// between reads, so that thousands of tiles neither exceed the memory
+/// bound nor the open-file limit.
+pub struct ChunkCache {
+    inner: Mutex<CacheInner>,
+    budget: usize,
+    idle_decoders: std::sync::atomic::AtomicUsize,
+    next_id: std::sync::atomic::AtomicU32,
+}
+
+struct CacheInner {
+    lru: lru::LruCache<u64, Arc<Chunk>, IdxBuild>,
     bytes: usize,
+}
+
+/// Idle TIFF decoders (each an open file) kept by all the rasters of one
+/// [`ChunkCache`]; more are closed after use.
+pub const MAX_IDLE_DECODERS: usize = 64;
+
+impl Chunk {
+    fn bytes(&self) -> usize {
+        match self {
+            Chunk::Elev(v) => v.len() * 4,
+            Chunk::Rgb(v) => v.len() * 3,
+        }
+    }
+}
+
+impl ChunkCache {
+    /// A cache of at most `budget` bytes of decoded chunks (at least one
+    /// chunk is kept).
+    pub fn new(budget: usize) -> Arc<ChunkCache> {
+        Arc::new(ChunkCache {
+            inner: Mutex::new(CacheInner {
+                lru: lru::LruCache::unbounded_with_hasher(IdxBuild::default()),
+                bytes: 0,
+            }),
+            budget,
+            idle_decoders: std::sync::atomic::AtomicUsize::new(0),
+            next_id: std::sync::atomic::AtomicU32::new(0),
+        })
+    }
+
+    /// Bytes of decoded chunks held now.
+    pub fn bytes(&self) -> usize {
+        self.inner.lock().bytes
+    }
+
+    fn get(&self, key: u64) -> Option<Arc<Chunk>> {
+        self.inner.lock().lru.get(&key).cloned()
+    }
+
+    fn put(&self, key: u64, chunk: Arc<Chunk>) {
+        let size = chunk.bytes();
+        let mut c = self.inner.lock();
+        while c.bytes + size > self.budget {
+            match c.lru.pop_lru() {
+                Some((_, old)) => c.bytes -= old.bytes(),
+                None => break,
+            }
+        }
+        if let Some(old) = c.lru.put(key, chunk) {
+            c.bytes -= old.bytes();
+        }
+        c.bytes += size;
+    }
+
+    /// Whether one more idle decoder may be kept (and count it).
+    fn keep_decoder(&self) -> bool {
+        use std::sync::atomic::Ordering;
+        self.idle_decoders
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < MAX_IDLE_DECODERS).then_some(n + 1)
+            })
+            .is_ok()
+    }
+
+    fn take_decoder(&self) {
+        self.idle_decoders
+            .fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
+    }
 }
 
 /// How a raster's chunks are read.
@@ -93,8 +172,9 @@ enum Backend {
     /// TIFF strips or tiles. Idle decoders: a worker takes one (or opens a
     /// new one) to decode a chunk, so several chunks decode in parallel.
     Tiff(Mutex<Vec<Decoder<BufReader<File>>>>),
-    /// An SRTM `.hgt` file: big-endian int16, row-major, chunks of rows.
-    Hgt(Mutex<File>),
+    /// An SRTM `.hgt` file: big-endian int16, row-major, chunks of rows
+    /// (the file is opened for each chunk read).
+    Hgt,
 }
 
 /// A georeferenced raster (GeoTIFF or SRTM `.hgt`) in any CRS [`Crs`] reads.
@@ -128,6 +208,12 @@ pub struct GeoTiff {
     pub vertical: Option<VerticalDatum>,
     /// Bounding box `(lat_min, lat_max, lon_min, lon_max)` of the pixel values.
     bbox: (f64, f64, f64, f64),
+    /// The bounding box as a test on unit directions ([`BoxTest`]).
+    box_test: BoxTest,
+    /// A 17 × 17 lattice of pixels over the raster, as face coordinates
+    /// (computed on first use; NaN-free: pixels that do not map are left
+    /// out).
+    outline: std::sync::OnceLock<Vec<planet_core::FaceCoord>>,
     /// Ground distance between neighbouring pixels at the raster's centre, m.
     spacing_m: f64,
     /// Projected elevation rasters: per row, the first and last column
@@ -135,12 +221,19 @@ pub struct GeoTiff {
     /// re-projected footprint (the corners `gdalwarp` pads), not a void to
     /// fill: points there are not covered.
     spans: Option<Vec<(u32, u32)>>,
+    /// The TIFF image (IFD) read: 0, or an overview's.
+    image: usize,
+    /// Reduced-resolution images of a TIFF (a Cloud-Optimized GeoTIFF's
+    /// overviews): IFD index, width and height, finest first.
+    overviews: Vec<(usize, u32, u32)>,
     chunk_w: u32,
     chunk_h: u32,
     chunks_across: u32,
     backend: Backend,
-    cache: Mutex<Cache>,
-    cache_bytes: usize,
+    /// The chunk cache (shared by the rasters of a build) and this
+    /// raster's key in it.
+    cache: Arc<ChunkCache>,
+    id: u32,
 }
 
 fn terr(path: &Path, e: impl std::fmt::Display) -> GeoError {
@@ -152,48 +245,126 @@ fn terr(path: &Path, e: impl std::fmt::Display) -> GeoError {
 
 /// The points of a sampling grid as unit directions (planet space), with
 /// their latitude/longitude (degrees) computed only where asked (two
-/// `atan2` per point were a third of a projected build's time).
+/// `atan2` per point were a third of a projected build's time). The
+/// directions are given, or computed on demand from a face's gnomonic
+/// plane coordinates (a block's grid: most points of a projected raster's
+/// grid are interpolated, never needing their direction).
 pub struct GridPoints<'a> {
-    dirs: &'a [[f64; 3]],
+    dirs: Dirs<'a>,
     ll: Vec<(f64, f64)>,
+}
+
+enum Dirs<'a> {
+    Given(&'a [[f64; 3]]),
+    /// Point `k` is `normalize(face.cube_point(us[k % nx], vs[k / nx]))`.
+    Axes {
+        face: planet_core::Face,
+        us: Vec<f64>,
+        vs: Vec<f64>,
+    },
 }
 
 impl<'a> GridPoints<'a> {
     /// Points at these unit directions.
     pub fn new(dirs: &'a [[f64; 3]]) -> GridPoints<'a> {
         GridPoints {
-            dirs,
+            dirs: Dirs::Given(dirs),
             ll: vec![(f64::NAN, f64::NAN); dirs.len()],
+        }
+    }
+
+    /// The row-major grid of points `normalize(face.cube_point(u, v))`
+    /// for `v` in `vs` (rows) and `u` in `us` (columns).
+    pub fn from_axes(face: planet_core::Face, us: Vec<f64>, vs: Vec<f64>) -> GridPoints<'static> {
+        let n = us.len() * vs.len();
+        GridPoints {
+            dirs: Dirs::Axes { face, us, vs },
+            ll: vec![(f64::NAN, f64::NAN); n],
         }
     }
 
     /// Number of points.
     pub fn len(&self) -> usize {
-        self.dirs.len()
+        self.ll.len()
     }
 
     /// Whether there are none.
     pub fn is_empty(&self) -> bool {
-        self.dirs.is_empty()
+        self.ll.is_empty()
+    }
+
+    /// The unit direction of point `k`.
+    #[inline]
+    pub fn direction(&self, k: usize) -> [f64; 3] {
+        match &self.dirs {
+            Dirs::Given(d) => d[k],
+            Dirs::Axes { face, us, vs } => {
+                let nx = us.len();
+                planet_core::cube::normalize(face.cube_point(us[k % nx], vs[k / nx]))
+            }
+        }
     }
 
     /// Latitude and longitude (degrees) of point `k`.
     #[inline]
     pub fn lat_lon(&mut self, k: usize) -> (f64, f64) {
-        let e = &mut self.ll[k];
-        if e.0.is_nan() {
-            let (la, lo) = planet_core::cube::lat_lon_from_direction(self.dirs[k]);
-            *e = (la.to_degrees(), lo.to_degrees());
+        if self.ll[k].0.is_nan() {
+            let (la, lo) = planet_core::cube::lat_lon_from_direction(self.direction(k));
+            self.ll[k] = (la.to_degrees(), lo.to_degrees());
         }
-        *e
+        self.ll[k]
     }
 }
 
-/// Lattice step of [`GeoTiff::pixels_of_grid`], in grid points.
-pub const APPROX_STEP: usize = 8;
+/// [`GeoTiff`]'s latitude/longitude bounding box test (`in_bbox`, with
+/// its 10⁻⁹° margin) on a unit direction, without its latitude and
+/// longitude: `sin(lat)` is the direction's `z`, and a longitude range is a
+/// wedge around its middle meridian (`cos` of the angle to it at least
+/// `cos` of the half width).
+#[derive(Debug, Clone, Copy, Default)]
+struct BoxTest {
+    all: bool,
+    z: (f64, f64),
+    mid: (f64, f64),
+    cos_half: f64,
+    all_lon: bool,
+}
+
+impl BoxTest {
+    fn new((b0, b1, l0, l1): (f64, f64, f64, f64), all: bool) -> BoxTest {
+        let e = 1e-9;
+        let half = 0.5 * (l1 - l0) + e;
+        let m = (0.5 * (l0 + l1)).to_radians();
+        BoxTest {
+            all,
+            z: (
+                (b0 - e).clamp(-90.0, 90.0).to_radians().sin(),
+                (b1 + e).clamp(-90.0, 90.0).to_radians().sin(),
+            ),
+            mid: (m.cos(), m.sin()),
+            cos_half: half.min(180.0).to_radians().cos(),
+            all_lon: half >= 180.0,
+        }
+    }
+
+    #[inline]
+    fn holds(&self, d: [f64; 3]) -> bool {
+        if self.all {
+            return true;
+        }
+        if d[2] < self.z.0 || d[2] > self.z.1 {
+            return false;
+        }
+        self.all_lon || d[0] * self.mid.0 + d[1] * self.mid.1 >= self.cos_half * d[0].hypot(d[1])
+    }
+}
+
 /// Largest interpolation error [`GeoTiff::pixels_of_grid`] accepts, pixels
 /// (gdalwarp's default `-et`).
 pub const APPROX_ERROR_PX: f64 = 0.125;
+
+/// TIFF images (IFDs) looked at for overviews.
+const MAX_IMAGES: usize = 32;
 
 /// Rows per chunk of an `.hgt` file.
 const HGT_CHUNK_ROWS: u32 = 64;
@@ -210,6 +381,13 @@ impl GeoTiff {
     /// decoded strips/tiles kept in memory (at least one chunk is kept).
     /// Files named `*.hgt` are read as SRTM height files, others as TIFF.
     pub fn open(path: &Path, cache_bytes: usize) -> Result<GeoTiff, GeoError> {
+        GeoTiff::open_in(path, &ChunkCache::new(cache_bytes))
+    }
+
+    /// [`GeoTiff::open`], its chunks kept in a cache shared with other
+    /// rasters.
+    pub fn open_in(path: &Path, cache: &Arc<ChunkCache>) -> Result<GeoTiff, GeoError> {
+        let cache_bytes = cache.clone();
         let is_hgt = path
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("hgt"));
@@ -288,7 +466,30 @@ impl GeoTiff {
         if chunk_w == 0 || chunk_h == 0 {
             return Err(terr(path, "zero chunk dimensions"));
         }
-        GeoTiff::assemble(
+        // Overviews: the reduced-resolution images (NewSubfileType bit 0,
+        // not masks, bit 2) after the first, as a COG holds them.
+        let mut overviews = Vec::new();
+        let mut ifd = 0;
+        while dec.more_images() && ifd < MAX_IMAGES {
+            ifd += 1;
+            if dec.next_image().is_err() {
+                break;
+            }
+            let sub = dec
+                .find_tag_unsigned::<u32>(Tag::NewSubfileType)
+                .ok()
+                .flatten()
+                .unwrap_or(0);
+            if let (1, 0, Ok((w, h))) = (sub & 1, sub & 4, dec.dimensions()) {
+                if w > 0 && h > 0 && w < width && h <= height {
+                    overviews.push((ifd, w, h));
+                }
+            }
+        }
+        if ifd > 0 {
+            dec.seek_to_image(0).map_err(|e| terr(path, e))?;
+        }
+        let mut t = GeoTiff::assemble(
             path,
             (width, height, kind),
             (x0, y0, dx, dy),
@@ -297,9 +498,76 @@ impl GeoTiff {
             crs,
             keys.vertical(),
             (chunk_w, chunk_h),
-            Backend::Tiff(Mutex::new(vec![dec])),
+            Backend::Tiff(Mutex::new(if cache_bytes.keep_decoder() {
+                vec![dec]
+            } else {
+                Vec::new()
+            })),
             cache_bytes,
-        )
+        )?;
+        t.overviews = overviews;
+        Ok(t)
+    }
+
+    /// The raster's overviews (COG reduced-resolution images): IFD index,
+    /// width and height, finest first.
+    pub fn overviews(&self) -> &[(usize, u32, u32)] {
+        &self.overviews
+    }
+
+    /// Overview `k` of [`GeoTiff::overviews`] as a raster of its own: the
+    /// same CRS, extent (the outer edges of the edge pixels) and samples'
+    /// meaning, coarser pixels, chunks in the same cache.
+    pub fn overview(&self, k: usize) -> Result<GeoTiff, GeoError> {
+        let &(image, w, h) = self
+            .overviews
+            .get(k)
+            .ok_or_else(|| terr(&self.path, format!("no overview {k}")))?;
+        let mut dec = self.open_decoder()?;
+        dec.seek_to_image(image).map_err(|e| terr(&self.path, e))?;
+        let (chunk_w, chunk_h) = dec.chunk_dimensions();
+        if chunk_w == 0 || chunk_h == 0 {
+            return Err(terr(&self.path, "zero chunk dimensions in an overview"));
+        }
+        let (dx, dy) = (
+            self.dx * self.width as f64 / w as f64,
+            self.dy * self.height as f64 / h as f64,
+        );
+        let (x0, y0) = (
+            self.x0 - 0.5 * self.dx + 0.5 * dx,
+            self.y0 + 0.5 * self.dy - 0.5 * dy,
+        );
+        let crs =
+            Crs::from_definition(&self.crs.definition, self.crs.name.clone()).map_err(|what| {
+                GeoError::WrongCrs {
+                    path: self.path.clone(),
+                    what,
+                }
+            })?;
+        let mut t = GeoTiff::assemble(
+            &self.path,
+            (w, h, self.kind),
+            (x0, y0, dx, dy),
+            self.nodata,
+            self.pixel_is_point,
+            crs,
+            self.vertical,
+            (chunk_w, chunk_h),
+            Backend::Tiff(Mutex::new(Vec::new())),
+            self.cache.clone(),
+        )?;
+        t.image = image;
+        if self.cache.keep_decoder() {
+            if let Backend::Tiff(d) = &t.backend {
+                d.lock().push(dec);
+            }
+        }
+        Ok(t)
+    }
+
+    /// The TIFF image (IFD) this raster reads: 0, or an overview's.
+    pub fn image(&self) -> usize {
+        self.image
     }
 
     /// Open an SRTM `.hgt` file: `n × n` big-endian int16 heights (n = 1201
@@ -307,7 +575,7 @@ impl GeoTiff {
     /// from north to south; the name (`N46W122.hgt`) gives the latitude
     /// and longitude of the south-west corner sample. Heights are above
     /// EGM96 (SRTM's vertical datum) on WGS84.
-    fn open_hgt(path: &Path, cache_bytes: usize) -> Result<GeoTiff, GeoError> {
+    fn open_hgt(path: &Path, cache_bytes: Arc<ChunkCache>) -> Result<GeoTiff, GeoError> {
         let bad = |what: String| GeoError::Georeference {
             path: path.to_path_buf(),
             what,
@@ -345,7 +613,7 @@ impl GeoTiff {
             Crs::wgs84(),
             Some(VerticalDatum::Egm96),
             (n, HGT_CHUNK_ROWS),
-            Backend::Hgt(Mutex::new(file)),
+            Backend::Hgt,
             cache_bytes,
         )
     }
@@ -361,7 +629,7 @@ impl GeoTiff {
         vertical: Option<VerticalDatum>,
         (chunk_w, chunk_h): (u32, u32),
         backend: Backend,
-        cache_bytes: usize,
+        cache: Arc<ChunkCache>,
     ) -> Result<GeoTiff, GeoError> {
         if width == 0 || height == 0 || width > MAX_SIDE || height > MAX_SIDE {
             return Err(terr(
@@ -384,18 +652,20 @@ impl GeoTiff {
             crs,
             vertical,
             bbox: (0.0, 0.0, 0.0, 0.0),
+            box_test: BoxTest::default(),
+            outline: std::sync::OnceLock::new(),
             spacing_m: 0.0,
             spans: None,
+            image: 0,
+            overviews: Vec::new(),
             chunk_w,
             chunk_h,
             chunks_across,
             backend,
-            cache: Mutex::new(Cache {
-                map: HashMap::default(),
-                stamp: 0,
-                bytes: 0,
-            }),
-            cache_bytes,
+            id: cache
+                .next_id
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            cache,
         };
         t.bbox = t.compute_bbox().ok_or_else(|| GeoError::WrongCrs {
             path: path.to_path_buf(),
@@ -404,6 +674,7 @@ impl GeoTiff {
                 t.crs.name
             ),
         })?;
+        t.box_test = BoxTest::new(t.bbox, t.is_global() || t.crs.is_identity());
         t.spacing_m = t.compute_spacing().ok_or_else(|| GeoError::WrongCrs {
             path: path.to_path_buf(),
             what: format!("{}: cannot measure the raster's pixel spacing", t.crs.name),
@@ -415,20 +686,35 @@ impl GeoTiff {
     }
 
     /// First and last valued column of every row (one pass over the raster,
-    /// a chunk row at a time).
+    /// a band of chunk rows per task, in parallel).
     fn compute_spans(&self) -> Result<Vec<(u32, u32)>, GeoError> {
-        let mut spans = vec![(u32::MAX, 0u32); self.height as usize];
-        let mut rd = self.reader();
-        for row in 0..self.height {
-            let sp = &mut spans[row as usize];
-            for col in 0..self.width {
-                if !rd.elevation(col as i64, row as i64)?.is_nan() {
-                    sp.0 = sp.0.min(col);
-                    sp.1 = col;
+        use rayon::prelude::*;
+        let bands: Vec<u32> = (0..self.height.div_ceil(self.chunk_h)).collect();
+        let parts = bands
+            .par_iter()
+            .map(|&band| {
+                let r0 = band * self.chunk_h;
+                let h = self.chunk_h.min(self.height - r0);
+                let mut spans = vec![(u32::MAX, 0u32); h as usize];
+                let mut rd = self.reader();
+                let mut buf = Vec::new();
+                for cx in 0..self.chunks_across {
+                    let c0 = cx * self.chunk_w;
+                    let w = self.chunk_w.min(self.width - c0);
+                    rd.window((c0, r0), (w, h), &mut buf)?;
+                    for (sp, row) in spans.iter_mut().zip(buf.chunks_exact(w as usize)) {
+                        let first = row.iter().position(|v| !v.is_nan());
+                        let last = row.iter().rposition(|v| !v.is_nan());
+                        if let (Some(a), Some(b)) = (first, last) {
+                            sp.0 = sp.0.min(c0 + a as u32);
+                            sp.1 = sp.1.max(c0 + b as u32);
+                        }
+                    }
                 }
-            }
-        }
-        Ok(spans)
+                Ok(spans)
+            })
+            .collect::<Result<Vec<_>, GeoError>>()?;
+        Ok(parts.concat())
     }
 
     /// Whether pixel `(col, row)` lies outside the raster's valued
@@ -563,6 +849,36 @@ impl GeoTiff {
             .unwrap_or((f64::NAN, f64::NAN))
     }
 
+    /// Whether a unit direction lies in the raster's latitude/longitude
+    /// bounding box (as [`GeoTiff::covers`]' first test, without computing
+    /// latitude and longitude).
+    #[inline]
+    pub fn box_holds(&self, d: [f64; 3]) -> bool {
+        self.box_test.holds(d)
+    }
+
+    /// A 17 × 17 lattice of the raster's pixels (corners included) as face
+    /// coordinates, for footprint tests.
+    pub fn lattice_points(&self) -> &[planet_core::FaceCoord] {
+        self.outline.get_or_init(|| {
+            let n = 16i64;
+            let (w, h) = (self.width as i64 - 1, self.height as i64 - 1);
+            let mut v = Vec::new();
+            for j in 0..=n {
+                for i in 0..=n {
+                    let (la, lo) = self.position_of(w * i / n, h * j / n);
+                    if la.is_finite() && lo.is_finite() {
+                        v.push(planet_core::FaceCoord::from_lat_lon(
+                            la.to_radians(),
+                            lo.to_radians(),
+                        ));
+                    }
+                }
+            }
+            v
+        })
+    }
+
     /// Whether the point lies between the first and last pixel values (so
     /// bilinear interpolation needs no extrapolation). Global rasters cover
     /// every longitude and clamp at the poles.
@@ -620,14 +936,23 @@ impl GeoTiff {
     }
 
     /// [`GeoTiff::pixel_of`] for a grid of `nx × ny` points (row-major),
-    /// NaN for points outside the raster's bounding box, as gdalwarp's
-    /// approximate transformer does (GDALApproxTransform, `-et 0.125`):
-    /// exact projections on a lattice of every [`APPROX_STEP`]th point and
-    /// at each lattice cell's middle point; where the bilinear
-    /// interpolation of the lattice misses the middle point by more than
-    /// [`APPROX_ERROR_PX`] pixel, or a corner does not project or lies
-    /// outside the bounding box, every point of the cell is projected
-    /// exactly. Rasters whose CRS is the surface's longitude/latitude are
+    /// NaN for points outside the raster's bounding box, approximated as
+    /// gdalwarp's approximate transformer does (GDALApproxTransform,
+    /// `-et 0.125`), in two dimensions: a cell of the grid (at first the
+    /// whole grid) has its 4 corners projected exactly, and its middle
+    /// point and the middles of its 4 edges too; where the bilinear
+    /// interpolation of the corners meets those 5 exact points within
+    /// [`APPROX_ERROR_PX`] pixel (in column and in row), every other point
+    /// of the cell is interpolated; else (or where a corner does not
+    /// project or lies outside the bounding box) the cell is split in 4 at
+    /// its middles and each quarter tried again, down to single grid cells,
+    /// whose points are all exact. The error of bilinear interpolation of a
+    /// smooth mapping is, to second order, largest at a cell's middle (the
+    /// `xy` term is interpolated exactly; the `x²` and `y²` terms peak at
+    /// the middle), so the middle's test bounds the cell; the edge middles
+    /// guard the edges shared with neighbouring cells. Tests check the
+    /// bound against exact projection at every point of UTM and polar
+    /// grids. Rasters whose CRS is the surface's longitude/latitude are
     /// mapped exactly (that is as cheap).
     pub fn pixels_of_grid(
         &self,
@@ -636,70 +961,114 @@ impl GeoTiff {
         ny: usize,
         out: &mut Vec<(f64, f64)>,
     ) {
-        let exact = |pts: &mut GridPoints<'_>, k: usize| -> (f64, f64) {
-            let (la, lo) = pts.lat_lon(k);
-            if self.in_bbox(la, lo) {
-                self.pixel_of(la, lo)
-            } else {
-                (f64::NAN, f64::NAN)
-            }
-        };
         out.clear();
         if self.crs.is_identity() || nx < 3 || ny < 3 {
-            out.extend((0..pts.len()).map(|k| exact(pts, k)));
+            out.extend((0..pts.len()).map(|k| {
+                let (la, lo) = pts.lat_lon(k);
+                if self.in_bbox(la, lo) {
+                    self.pixel_of(la, lo)
+                } else {
+                    (f64::NAN, f64::NAN)
+                }
+            }));
             return;
         }
         out.resize(nx * ny, (f64::NAN, f64::NAN));
-        let lattice = |n: usize| -> Vec<usize> {
-            let mut v: Vec<usize> = (0..n).step_by(APPROX_STEP).collect();
-            if v.last() != Some(&(n - 1)) {
-                v.push(n - 1);
-            }
-            v
-        };
-        let (xs, ys) = (lattice(nx), lattice(ny));
-        for &y in &ys {
-            for &x in &xs {
-                out[y * nx + x] = exact(pts, y * nx + x);
-            }
-        }
+        // Per point: 0 not set, 1 interpolated, 2 exact, 3 exact but
+        // outside the bounding box (made NaN at the end: the projection
+        // itself is smooth there and serves as a cell corner).
+        let mut state = vec![0u8; nx * ny];
+        let exact_at =
+            |pts: &mut GridPoints<'_>, out: &mut [(f64, f64)], state: &mut [u8], k: usize| {
+                if state[k] < 2 {
+                    let (la, lo) = pts.lat_lon(k);
+                    out[k] = self.pixel_of(la, lo);
+                    state[k] = if self.in_bbox(la, lo) { 2 } else { 3 };
+                }
+                out[k]
+            };
         let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
-        for jy in 0..ys.len() - 1 {
-            let (y0, y1) = (ys[jy], ys[jy + 1]);
-            for jx in 0..xs.len() - 1 {
-                let (x0, x1) = (xs[jx], xs[jx + 1]);
-                let k = [
-                    out[y0 * nx + x0],
-                    out[y0 * nx + x1],
-                    out[y1 * nx + x0],
-                    out[y1 * nx + x1],
-                ];
-                let interp = |x: usize, y: usize| -> (f64, f64) {
-                    let fx = (x - x0) as f64 / (x1 - x0) as f64;
-                    let fy = (y - y0) as f64 / (y1 - y0) as f64;
-                    let top = (lerp(k[0].0, k[1].0, fx), lerp(k[0].1, k[1].1, fx));
-                    let bot = (lerp(k[2].0, k[3].0, fx), lerp(k[2].1, k[3].1, fx));
-                    (lerp(top.0, bot.0, fy), lerp(top.1, bot.1, fy))
-                };
-                let (mx, my) = ((x0 + x1) / 2, (y0 + y1) / 2);
-                let exact_mid = exact(pts, my * nx + mx);
-                let guess = interp(mx, my);
-                // NaN (outside the box or the projection) fails these.
-                let good = k.iter().all(|c| c.0.is_finite() && c.1.is_finite())
-                    && (guess.0 - exact_mid.0).abs() <= APPROX_ERROR_PX
-                    && (guess.1 - exact_mid.1).abs() <= APPROX_ERROR_PX;
+        let mut cells = vec![(0usize, nx - 1, 0usize, ny - 1)];
+        while let Some((x0, x1, y0, y1)) = cells.pop() {
+            let k = [
+                exact_at(pts, out, &mut state, y0 * nx + x0),
+                exact_at(pts, out, &mut state, y0 * nx + x1),
+                exact_at(pts, out, &mut state, y1 * nx + x0),
+                exact_at(pts, out, &mut state, y1 * nx + x1),
+            ];
+            let interp = |x: usize, y: usize| -> (f64, f64) {
+                let fx = (x - x0) as f64 / (x1 - x0) as f64;
+                let fy = (y - y0) as f64 / (y1 - y0) as f64;
+                let top = (lerp(k[0].0, k[1].0, fx), lerp(k[0].1, k[1].1, fx));
+                let bot = (lerp(k[2].0, k[3].0, fx), lerp(k[2].1, k[3].1, fx));
+                (lerp(top.0, bot.0, fy), lerp(top.1, bot.1, fy))
+            };
+            let (mx, my) = ((x0 + x1) / 2, (y0 + y1) / 2);
+            // NaN (outside the box or the projection) fails these.
+            let mut good = k.iter().all(|c| c.0.is_finite() && c.1.is_finite());
+            for (x, y) in [(mx, my), (mx, y0), (mx, y1), (x0, my), (x1, my)] {
+                if !good {
+                    break;
+                }
+                if (x == x0 || x == x1) && (y == y0 || y == y1) {
+                    continue; // a corner (a cell one point wide)
+                }
+                let e = exact_at(pts, out, &mut state, y * nx + x);
+                let g = interp(x, y);
+                good = (g.0 - e.0).abs() <= APPROX_ERROR_PX && (g.1 - e.1).abs() <= APPROX_ERROR_PX;
+            }
+            if good {
+                // Points outside the box are tested one by one (on their
+                // directions) unless the 4 corners lie inside it.
+                let boxed = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+                    .iter()
+                    .all(|&(x, y)| state[y * nx + x] == 2);
+                // interp(x, y), a row at a time.
+                let w = (x1 - x0) as f64;
                 for y in y0..=y1 {
+                    let fy = (y - y0) as f64 / (y1 - y0) as f64;
+                    let l = (lerp(k[0].0, k[2].0, fy), lerp(k[0].1, k[2].1, fy));
+                    let r = (lerp(k[1].0, k[3].0, fy), lerp(k[1].1, k[3].1, fy));
+                    let row = y * nx;
                     for x in x0..=x1 {
-                        if (x == x0 || x == x1) && (y == y0 || y == y1) {
-                            continue;
+                        let i = row + x;
+                        if state[i] == 0 {
+                            let fx = (x - x0) as f64 / w;
+                            out[i] = if boxed || self.box_test.holds(pts.direction(i)) {
+                                (lerp(l.0, r.0, fx), lerp(l.1, r.1, fx))
+                            } else {
+                                (f64::NAN, f64::NAN)
+                            };
+                            state[i] = 1;
                         }
-                        out[y * nx + x] = if good {
-                            interp(x, y)
-                        } else {
-                            exact(pts, y * nx + x)
-                        };
                     }
                 }
+                continue;
+            }
+            // Split where the cell is wider than one grid step; a single
+            // grid cell has only its (exact) corners.
+            let xs: &[(usize, usize)] = if x1 - x0 >= 2 {
+                &[(x0, mx), (mx, x1)]
+            } else {
+                &[(x0, x1)]
+            };
+            let ys: &[(usize, usize)] = if y1 - y0 >= 2 {
+                &[(y0, my), (my, y1)]
+            } else {
+                &[(y0, y1)]
+            };
+            if xs.len() == 1 && ys.len() == 1 {
+                continue;
+            }
+            for &(a, b) in xs {
+                for &(c, d) in ys {
+                    cells.push((a, b, c, d));
+                }
+            }
+        }
+        for (o, st) in out.iter_mut().zip(&state) {
+            if *st == 3 {
+                *o = (f64::NAN, f64::NAN);
             }
         }
     }
@@ -732,27 +1101,27 @@ impl GeoTiff {
     }
 
     fn chunk(&self, idx: u32) -> Result<Arc<Chunk>, GeoError> {
-        {
-            let mut c = self.cache.lock();
-            c.stamp += 1;
-            let s = c.stamp;
-            if let Some(e) = c.map.get_mut(&idx) {
-                e.1 = s;
-                return Ok(e.0.clone());
-            }
+        let key = (self.id as u64) << 32 | idx as u64;
+        if let Some(c) = self.cache.get(key) {
+            return Ok(c);
         }
         let data = match &self.backend {
             Backend::Tiff(decoders) => {
                 let idle = decoders.lock().pop();
                 let mut d = match idle {
-                    Some(d) => d,
+                    Some(d) => {
+                        self.cache.take_decoder();
+                        d
+                    }
                     None => self.open_decoder()?,
                 };
                 let r = d.read_chunk(idx).map_err(|e| terr(&self.path, e));
-                decoders.lock().push(d);
+                if self.cache.keep_decoder() {
+                    decoders.lock().push(d);
+                }
                 r?
             }
-            Backend::Hgt(file) => DecodingResult::I16(self.read_hgt_rows(file, idx)?),
+            Backend::Hgt => DecodingResult::I16(self.read_hgt_rows(idx)?),
         };
         let nodata = self.nodata;
         let void = |v: f64| nodata.is_some_and(|n| v == n) || !v.is_finite();
@@ -790,41 +1159,23 @@ impl GeoTiff {
             }
             _ => return Err(bad()),
         };
-        let size = match &chunk {
-            Chunk::Elev(v) => v.len() * 4,
-            Chunk::Rgb(v) => v.len() * 3,
-        };
         let arc = Arc::new(chunk);
-        let mut c = self.cache.lock();
-        while c.bytes + size > self.cache_bytes && !c.map.is_empty() {
-            let oldest = c.map.iter().min_by_key(|e| (e.1).1).map(|e| *e.0);
-            if let Some(k) = oldest {
-                if let Some((old, _)) = c.map.remove(&k) {
-                    c.bytes -= match &*old {
-                        Chunk::Elev(v) => v.len() * 4,
-                        Chunk::Rgb(v) => v.len() * 3,
-                    };
-                }
-            }
-        }
-        c.stamp += 1;
-        let s = c.stamp;
-        c.bytes += size;
-        c.map.insert(idx, (arc.clone(), s));
+        self.cache.put(key, arc.clone());
         Ok(arc)
     }
 
     /// Rows `[idx·HGT_CHUNK_ROWS, …)` of an `.hgt` file.
-    fn read_hgt_rows(&self, file: &Mutex<File>, idx: u32) -> Result<Vec<i16>, GeoError> {
+    fn read_hgt_rows(&self, idx: u32) -> Result<Vec<i16>, GeoError> {
         let r0 = idx as u64 * self.chunk_h as u64;
         let rows = (self.chunk_h as u64).min((self.height as u64).saturating_sub(r0));
         let mut buf = vec![0u8; (rows * self.width as u64 * 2) as usize];
-        {
-            let mut f = file.lock();
-            f.seek(SeekFrom::Start(r0 * self.width as u64 * 2))
-                .and_then(|_| f.read_exact(&mut buf))
-                .map_err(|e| terr(&self.path, e))?;
-        }
+        let mut f = File::open(&self.path).map_err(|e| GeoError::Open {
+            path: self.path.clone(),
+            source: e,
+        })?;
+        f.seek(SeekFrom::Start(r0 * self.width as u64 * 2))
+            .and_then(|_| f.read_exact(&mut buf))
+            .map_err(|e| terr(&self.path, e))?;
         Ok(buf
             .chunks_exact(2)
             .map(|b| i16::from_be_bytes([b[0], b[1]]))
@@ -836,9 +1187,14 @@ impl GeoTiff {
             path: self.path.clone(),
             source: e,
         })?;
-        Ok(Decoder::new(BufReader::new(file))
+        let mut dec = Decoder::new(BufReader::new(file))
             .map_err(|e| terr(&self.path, e))?
-            .with_limits(limits()))
+            .with_limits(limits());
+        if self.image > 0 {
+            dec.seek_to_image(self.image)
+                .map_err(|e| terr(&self.path, e))?;
+        }
+        Ok(dec)
     }
 
     /// A reader with its own small memo of recently used chunks, so that
@@ -964,6 +1320,50 @@ impl TiffReader<'_> {
         }
     }
 
+    /// Raw elevations (NaN for voids) of pixels `[c0, c0 + w) × [r0, r0 +
+    /// h)`, which must lie inside the raster, into `buf` (row-major, `w`
+    /// wide), copied a chunk row segment at a time.
+    pub fn window(
+        &mut self,
+        (c0, r0): (u32, u32),
+        (w, h): (u32, u32),
+        buf: &mut Vec<f32>,
+    ) -> Result<(), GeoError> {
+        let t = self.tiff;
+        buf.clear();
+        buf.resize(w as usize * h as usize, f32::NAN);
+        if w == 0 || h == 0 || c0 + w > t.width || r0 + h > t.height {
+            return Ok(());
+        }
+        let (c1, r1) = (c0 + w, r0 + h);
+        for cy in r0 / t.chunk_h..=(r1 - 1) / t.chunk_h {
+            for cx in c0 / t.chunk_w..=(c1 - 1) / t.chunk_w {
+                let (cc0, cr0) = (cx * t.chunk_w, cy * t.chunk_h);
+                let data_w = t.chunk_w.min(t.width - cc0) as usize;
+                let (a, b) = (c0.max(cc0), c1.min(cc0 + t.chunk_w));
+                let idx = cy * t.chunks_across + cx;
+                let v = match self.chunk(idx)? {
+                    Chunk::Elev(v) => v,
+                    Chunk::Rgb(_) => {
+                        return Err(GeoError::UnsupportedSampleType {
+                            path: t.path.clone(),
+                            what: "colour raster used as elevation".into(),
+                        })
+                    }
+                };
+                for row in r0.max(cr0)..r1.min(cr0 + t.chunk_h) {
+                    let src = (row - cr0) as usize * data_w + (a - cc0) as usize;
+                    let dst = (row - r0) as usize * w as usize + (a - c0) as usize;
+                    let n = (b - a) as usize;
+                    if let Some(s) = v.get(src..src + n) {
+                        buf[dst..dst + n].copy_from_slice(s);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// [`GeoTiff::colour`].
     #[inline]
     pub fn colour(&mut self, col: i64, row: i64) -> Result<[u8; 3], GeoError> {
@@ -1009,7 +1409,8 @@ pub const MAX_SIDE: u32 = 1 << 24;
 
 /// What the `raster_readers` fuzz target and its replay test run on
 /// untrusted bytes at `path`: open the raster with a 1 MiB chunk cache,
-/// map its corners and centre through its CRS and read those pixels.
+/// map its corners and centre through its CRS and read those pixels, and
+/// read a pixel of its coarsest overview.
 pub fn probe(path: &Path) -> Result<(), GeoError> {
     let t = GeoTiff::open(path, 1 << 20)?;
     let (w, h) = (t.width as i64, t.height as i64);
@@ -1029,6 +1430,15 @@ pub fn probe(path: &Path) -> Result<(), GeoError> {
             t.elevation(c, r)?;
         } else {
             t.colour(c, r)?;
+        }
+    }
+    // The coarsest overview (COG), georeferenced from the full image.
+    if let Some(k) = t.overviews().len().checked_sub(1) {
+        let o = t.overview(k)?;
+        if o.kind.is_elevation() {
+            o.elevation(0, 0)?;
+        } else {
+            o.colour(0, 0)?;
         }
     }
     Ok(())

@@ -6,6 +6,9 @@
 //! - [`geotiff`]: GeoTIFF and SRTM `.hgt` rasters read by chunks on demand.
 //! - [`crs`]: their CRS (GeoKeys → PROJ string → `proj4rs`) and surface.
 //! - [`geoid`]: vertical datums (EGM96, EGM2008) to ellipsoidal heights.
+//! - [`inputs`]: directories of tiles and list files as raster inputs.
+//! - [`index`]: which rasters of a stack (thousands of tiles) may hold a
+//!   block or a point.
 //! - [`source`]: the elevation stack (finest covering source, void filling)
 //!   and colour source, re-projected per block (thesis §5.2, Eq. 5.1).
 //! - [`plan`]: the tree shape, depth by region, graded (thesis §4.3.3).
@@ -24,6 +27,8 @@ pub mod db;
 pub mod error;
 pub mod geoid;
 pub mod geotiff;
+pub mod index;
+pub mod inputs;
 pub mod plan;
 pub mod procedural;
 pub mod source;
@@ -103,9 +108,20 @@ pub fn open_rasters_noting(
         let geoid = geoid::EGM96_FIXED_BYTES + threads * geoid::EGM96_THREAD_BYTES;
         cache = cache.saturating_sub(geoid).max(cache / 4);
     }
-    let stack = source::ElevationStack::open_with(elevation, cache * 3 / 4, &opts.vertical, note)?;
+    let stack = source::ElevationStack::open_capped(
+        elevation,
+        cache * 3 / 4,
+        &opts.vertical,
+        opts.max_level,
+        note,
+    )?;
     let colour = match colour {
-        Some(p) => Some(source::ColourSource::open(p, cache / 4)?),
+        Some(p) => Some(source::ColourSource::open_capped(
+            p,
+            cache / 4,
+            opts.max_level,
+            note,
+        )?),
         None => None,
     };
     let datum = source::check_same_datum(
@@ -190,4 +206,57 @@ pub fn build_rasters_noting(
             codecs: opts.codecs,
         },
     )
+}
+
+/// What [`resample_rasters`] did.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ResampleStats {
+    /// Leaf grids re-projected.
+    pub leaves: u64,
+    /// Samples computed (`65²` per leaf grid).
+    pub samples: u64,
+    /// Wall time in seconds (re-projection and sampling only: the rasters
+    /// are opened and the tree planned before the clock starts).
+    pub seconds: f64,
+    /// Sum of the stored heights (keeps the work observable).
+    pub checksum: i64,
+}
+
+/// Re-project and sample every elevation leaf grid of the build's tree, in
+/// parallel, and nothing else (no LODs, encoding or writing): the
+/// re-projection part of a build, measured alone (`planet-build resample`).
+pub fn resample_rasters(
+    elevation: &[&Path],
+    opts: &RasterOptions,
+) -> Result<ResampleStats, BuildError> {
+    use rayon::prelude::*;
+    let (src, plan) = open_rasters(elevation, None, opts)?;
+    let leaves = match &plan {
+        plan::Plan::Explicit { split, .. } => plan::leaves(split),
+        plan::Plan::Uniform { .. } => Vec::new(),
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(opts.threads.unwrap_or_else(rayon::current_num_threads))
+        .build()
+        .map_err(|e| BuildError::Options(format!("thread pool: {e}")))?;
+    let side = source::ELEVATION_WIDTH + 1;
+    let start = std::time::Instant::now();
+    let checksum = pool.install(|| {
+        leaves
+            .par_iter()
+            .map_init(
+                || vec![0i16; side * side],
+                |grid, &b| -> Result<i64, BuildError> {
+                    src.elevation_leaf(b, grid)?;
+                    Ok(grid.iter().map(|&v| v as i64).sum())
+                },
+            )
+            .try_reduce(|| 0, |a, b| Ok(a + b))
+    })?;
+    Ok(ResampleStats {
+        leaves: leaves.len() as u64,
+        samples: (leaves.len() * side * side) as u64,
+        seconds: start.elapsed().as_secs_f64(),
+        checksum,
+    })
 }

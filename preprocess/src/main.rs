@@ -24,7 +24,9 @@ enum Cmd {
     Build {
         /// Elevation rasters: GeoTIFFs in any geographic or projected CRS
         /// (EPSG code or user-defined GeoKeys; int16, uint16 or float32) or
-        /// SRTM .hgt files. All must lie on one body.
+        /// SRTM .hgt files; a directory stands for every raster under it, a
+        /// .txt or .list file for the rasters it lists (one per line). All
+        /// must lie on one body; finer rasters win over coarser ones.
         #[arg(long, num_args = 1..)]
         elevation: Vec<PathBuf>,
         /// Colour GeoTIFF (RGB8 or grey8), any CRS; alone, it builds a
@@ -144,6 +146,26 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Re-project and sample every elevation leaf grid a build from these
+    /// rasters would make, and nothing else (no LODs, encoding or file):
+    /// the re-projection part of a build, timed alone.
+    Resample {
+        /// Elevation rasters (as `build`).
+        #[arg(long, num_args = 1.., required = true)]
+        elevation: Vec<PathBuf>,
+        /// Vertical datum of the inputs (as `build`).
+        #[arg(long, num_args = 1.., value_name = "egm96|egm2008|ellipsoid")]
+        vertical_datum: Vec<planet_preprocess::geoid::VerticalDatum>,
+        /// Deepest level.
+        #[arg(long, default_value_t = 16)]
+        max_level: u8,
+        /// Memory bound in MiB (raster caches).
+        #[arg(long, default_value_t = 1024)]
+        max_memory: usize,
+        /// Worker threads.
+        #[arg(long)]
+        threads: Option<usize>,
+    },
     /// Height at a point: above the ellipsoid on the line before last, and
     /// alone on the last line in the sources' own vertical datum (the same
     /// for ellipsoidal or procedural databases).
@@ -245,6 +267,7 @@ fn run() -> Result<()> {
                          (metre-level accuracy)"
                     );
                 }
+                let elevation = planet_preprocess::inputs::expand(&elevation)?;
                 let e: Vec<&std::path::Path> = elevation.iter().map(|p| p.as_path()).collect();
                 planet_preprocess::build_rasters_noting(
                     &e,
@@ -289,6 +312,34 @@ fn run() -> Result<()> {
                 }
             }
         }
+        Cmd::Resample {
+            elevation,
+            vertical_datum,
+            max_level,
+            max_memory,
+            threads,
+        } => {
+            let elevation = planet_preprocess::inputs::expand(&elevation)?;
+            let e: Vec<&std::path::Path> = elevation.iter().map(|p| p.as_path()).collect();
+            let st = planet_preprocess::resample_rasters(
+                &e,
+                &RasterOptions {
+                    max_level,
+                    max_memory_mb: max_memory,
+                    threads,
+                    vertical: vertical_datum,
+                    ..RasterOptions::default()
+                },
+            )?;
+            println!(
+                "resampled {} leaf grids, {} samples in {:.2} s ({:.1} M samples/s, checksum {})",
+                st.leaves,
+                st.samples,
+                st.seconds,
+                st.samples as f64 / st.seconds.max(1e-9) / 1e6,
+                st.checksum
+            );
+        }
         Cmd::Verify {
             db: path,
             elevation,
@@ -311,6 +362,7 @@ fn run() -> Result<()> {
                 let src = planet_preprocess::Procedural::new(&opts);
                 db::verify_against(&path, Some(&src))
             } else if !elevation.is_empty() {
+                let elevation = planet_preprocess::inputs::expand(&elevation)?;
                 let e: Vec<&std::path::Path> = elevation.iter().map(|p| p.as_path()).collect();
                 let (src, _) = planet_preprocess::open_rasters(
                     &e,

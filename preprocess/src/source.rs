@@ -21,23 +21,29 @@
 //!   where the coarse value is 1000 m off (a 0.5° ETOPO5 cell at a summit).
 //!
 //!   Fills are computed lazily, the first time a void of a raster is read,
-//!   and kept (sparse: only the void pixels). The transient memory of a fill
+//!   and kept within a bound (sparse: only the void pixels). The transient memory of a fill
 //!   is about [`FILL_BYTES_PER_CELL`] bytes per window pixel and must fit
-//!   the layer's share of the memory budget: a raster that fits (an SRTM
+//!   a fill's share of the memory budget (half of the rasters' budget, the
+//!   chunk cache having the other half, divided among the fills that may
+//!   run at once, one per worker and layer, and the fill tables kept, which
+//!   are evicted least recently used first and computed again if needed
+//!   again): a raster that fits (an SRTM
 //!   tile of 1201² needs ~70 MB) is filled as a whole, so every void region
 //!   sees its whole border; a larger one is filled per square tile within a
 //!   window with a margin of a sixth of the window (the window's edge acts
 //!   as a mirror, so only voids wider than the margin see less than their
-//!   full border). One fill per layer runs at a time, bounding the peak.
+//!   full border). The harmonic fill is solved on the bounding box of a
+//!   window's voids and the pixels around it.
 //! - Colour comes from one RGB8 (or grey) raster, sampled bilinearly at texel
 //!   centres `(x·Wc + i + ½)/(Wc·2^L)`.
 
 use crate::build::GridSource;
 use crate::error::{BuildError, GeoError};
 use crate::geoid::{self, Egm96Grid, Egm96Reader, VerticalDatum};
-use crate::geotiff::{GeoTiff, GridPoints, TiffReader};
+use crate::geotiff::{ChunkCache, GeoTiff, GridPoints, TiffReader};
+use crate::index::LayerIndex;
 use parking_lot::Mutex;
-use planet_core::cube::{normalize, plane_from_angle, sample_coord};
+use planet_core::cube::{plane_from_angle, sample_coord};
 use planet_core::lod::Rgb;
 use planet_core::{BlockId, Datum, FaceCoord};
 use std::collections::HashMap;
@@ -46,6 +52,16 @@ use std::sync::Arc;
 
 /// Transient bytes per window pixel of a void fill (grids and pyramid).
 pub const FILL_BYTES_PER_CELL: usize = 48;
+
+/// Bytes a kept fill table takes per void pixel (a hash map of u64 to f64
+/// with its control bytes and spare capacity).
+pub const FILL_TABLE_BYTES_PER_VOID: usize = 40;
+
+/// Fill tables kept: `(layer, window)` by use, with their bytes.
+struct KeptFills {
+    lru: lru::LruCache<(usize, (u32, u32)), usize>,
+    bytes: usize,
+}
 
 /// Filled values (metres) of the void pixels of one fill window, by
 /// `row · width + col` of the raster.
@@ -86,13 +102,21 @@ pub struct ElevationStack {
     /// Layers sorted by increasing level (coarse to fine).
     pub layers: Vec<Layer>,
     fills: Vec<FillCache>,
-    /// One fill computation per layer at a time (a fill of layer i only
-    /// reads fills of coarser layers, so these never wait in a cycle).
-    computing: Vec<Mutex<()>>,
+    /// The fill tables kept (by layer and window), least recently used
+    /// first out once their bytes pass `fill_budget`: the voids of
+    /// thousands of tiles stay within the memory bound, a table evicted is
+    /// computed again (the same) if needed again.
+    kept: Mutex<KeptFills>,
+    /// Per layer, the fill computations that may run at once (one per
+    /// worker; a fill of layer i only reads fills of coarser layers, so
+    /// these never wait in a cycle).
+    computing: Vec<Permits>,
     /// Bytes a layer's fill window may take.
     fill_budget: usize,
     /// EGM96 undulation nodes shared by the layers.
     geoid: Egm96Grid,
+    /// Which layers may hold a block or point.
+    index: LayerIndex,
 }
 
 /// The vertical datum of an elevation raster: `chosen` if given, else what
@@ -122,6 +146,40 @@ pub fn vertical_datum_of(
         VerticalDatum::Ellipsoid,
         "not declared; taken as ellipsoidal",
     )
+}
+
+/// `t`, or its coarsest overview whose level (for blocks `w` samples wide)
+/// is still at least `max_level` where `t` itself is finer than that.
+pub fn overview_for(
+    t: GeoTiff,
+    max_level: u8,
+    w: usize,
+    note: &mut dyn FnMut(String),
+) -> Result<GeoTiff, GeoError> {
+    let full = level_for(t.cells_per_quarter(), w);
+    if full <= max_level {
+        return Ok(t);
+    }
+    for k in (0..t.overviews().len()).rev() {
+        let (_, ow, oh) = t.overviews()[k];
+        let estimate = t.cells_per_quarter() * ow as f64 / t.width as f64;
+        if level_for(estimate, w) < max_level {
+            continue;
+        }
+        let ov = t.overview(k)?;
+        let level = level_for(ov.cells_per_quarter(), w);
+        if level >= max_level {
+            note(format!(
+                "{}: overview {ow} × {oh} (level {level}) read for a tree of level {max_level} \
+                 (the full {} × {} raster is level {full})",
+                t.path().display(),
+                t.width,
+                t.height
+            ));
+            return Ok(ov);
+        }
+    }
+    Ok(t)
 }
 
 /// Check that every raster lies on the same surface; the error names the
@@ -173,7 +231,26 @@ impl ElevationStack {
         vertical: &[VerticalDatum],
         note: &mut dyn FnMut(String),
     ) -> Result<ElevationStack, GeoError> {
-        let per = (cache_bytes / paths.len().max(1)).max(1 << 20);
+        ElevationStack::open_capped(paths, cache_bytes, vertical, u8::MAX, note)
+    }
+
+    /// [`ElevationStack::open_with`] for a tree no deeper than `max_level`:
+    /// a raster finer than that level is read from its coarsest overview
+    /// (Cloud-Optimized GeoTIFF) still at least as fine, and `note` says
+    /// which.
+    pub fn open_capped(
+        paths: &[&Path],
+        cache_bytes: usize,
+        vertical: &[VerticalDatum],
+        max_level: u8,
+        note: &mut dyn FnMut(String),
+    ) -> Result<ElevationStack, GeoError> {
+        // One chunk cache for every layer, however many, with half of the
+        // bound; the other half is shared by the fills that can run at once
+        // (one window per worker) and the fill tables kept.
+        let cache = ChunkCache::new((cache_bytes / 2).max(1 << 20));
+        let concurrent = rayon::current_num_threads().max(1);
+        let per = (cache_bytes / 2 / (concurrent + 1)).max(1 << 20);
         let mut layers = Vec::new();
         for (i, p) in paths.iter().enumerate() {
             let vertical = match vertical {
@@ -181,7 +258,12 @@ impl ElevationStack {
                 [one] => Some(*one),
                 many => many.get(i).copied(),
             };
-            let tiff = GeoTiff::open(p, per)?;
+            let tiff = overview_for(
+                GeoTiff::open_in(p, &cache)?,
+                max_level,
+                ELEVATION_WIDTH,
+                note,
+            )?;
             if !tiff.kind.is_elevation() {
                 return Err(GeoError::Role {
                     path: p.to_path_buf(),
@@ -223,10 +305,15 @@ impl ElevationStack {
                 .unwrap_or(std::cmp::Ordering::Equal)
         });
         let fills = layers.iter().map(|_| Mutex::new(HashMap::new())).collect();
-        let computing = layers.iter().map(|_| Mutex::new(())).collect();
+        let computing = layers.iter().map(|_| Permits::new(concurrent)).collect();
         Ok(ElevationStack {
+            index: LayerIndex::new(layers.iter().map(|l| &l.tiff)),
             layers,
             fills,
+            kept: Mutex::new(KeptFills {
+                lru: lru::LruCache::unbounded(),
+                bytes: 0,
+            }),
             computing,
             fill_budget: per,
             geoid: Egm96Grid::new(),
@@ -245,7 +332,7 @@ impl ElevationStack {
     pub fn reader(&self) -> StackReader<'_> {
         StackReader {
             stack: self,
-            layers: self.layers.iter().map(|l| l.tiff.reader()).collect(),
+            readers: Vec::new(),
             geoid: self.geoid.reader(),
         }
     }
@@ -270,27 +357,54 @@ impl ElevationStack {
     /// The finest level of any layer whose footprint intersects the block.
     pub fn level_needed(&self, b: BlockId) -> u8 {
         let mut best = 0;
-        for l in &self.layers {
+        for idx in self.index.near_block(b) {
+            let l = &self.layers[idx];
             if l.level > best && footprint_intersects(&l.tiff, b) {
                 best = l.level;
             }
         }
         best
     }
+
+    /// The layers whose footprints may meet block `b` (stack order).
+    pub fn layers_near(&self, b: BlockId) -> Vec<usize> {
+        self.index.near_block(b)
+    }
 }
 
 /// Reads of an [`ElevationStack`] by one worker (lock-free on chunk hits).
 pub struct StackReader<'a> {
     stack: &'a ElevationStack,
-    layers: Vec<TiffReader<'a>>,
+    /// Readers of the layers used so far (a few of a stack's thousands).
+    readers: Vec<(usize, TiffReader<'a>)>,
     geoid: Egm96Reader<'a>,
 }
 
-impl StackReader<'_> {
+impl<'a> StackReader<'a> {
+    /// The reader of layer `idx`.
+    #[inline]
+    fn rd(&mut self, idx: usize) -> &mut TiffReader<'a> {
+        let pos = match self.readers.iter().position(|r| r.0 == idx) {
+            Some(p) => p,
+            None => {
+                self.readers
+                    .push((idx, self.stack.layers[idx].tiff.reader()));
+                self.readers.len() - 1
+            }
+        };
+        &mut self.readers[pos].1
+    }
+
+    /// Layer `idx`'s raster.
+    #[inline]
+    fn tiff(&self, idx: usize) -> &'a GeoTiff {
+        &self.stack.layers[idx].tiff
+    }
+
     /// [`ElevationStack::sample`].
     pub fn sample(&mut self, lat: f64, lon: f64) -> Result<f64, GeoError> {
-        for idx in (0..self.layers.len()).rev() {
-            if self.layers[idx].tiff().covers(lat, lon) {
+        for idx in self.stack.index.near_point(lat, lon).into_iter().rev() {
+            if self.tiff(idx).covers(lat, lon) {
                 return self.sample_layer(idx, lat, lon);
             }
         }
@@ -299,33 +413,55 @@ impl StackReader<'_> {
 
     /// [`ElevationStack::sample_layer`].
     pub fn sample_layer(&mut self, idx: usize, lat: f64, lon: f64) -> Result<f64, GeoError> {
-        let (c, r) = self.layers[idx].tiff().pixel_of(lat, lon);
+        let (c, r) = self.tiff(idx).pixel_of(lat, lon);
         self.sample_layer_at(idx, lat, lon, c, r)
     }
 
     /// Elevations (m above the ellipsoid) of a row-major grid of `nx × ny`
-    /// points, as [`StackReader::sample`] at each, with each layer's pixel
+    /// points, as [`StackReader::sample`] at each from the candidate
+    /// `layers` (stack order, e.g. [`ElevationStack::layers_near`] its
+    /// block), with each layer's pixel
     /// coordinates from [`GeoTiff::pixels_of_grid`] (computed for a layer
-    /// only once a point needs it).
+    /// only once a point needs it). The pixels around the points a layer
+    /// holds are copied once into a [`Window`]; a point whose 4 pixels are
+    /// valued there is interpolated from it (valued pixels are neither
+    /// voids nor outside a footprint), others pixel by pixel (wrapping,
+    /// clamping, void filling): the same values either way.
     pub fn sample_grid(
         &mut self,
+        layers: &[usize],
         pts: &mut GridPoints<'_>,
         nx: usize,
         ny: usize,
         out: &mut [f64],
     ) -> Result<(), GeoError> {
-        let n = self.layers.len();
-        let mut px: Vec<Option<Vec<(f64, f64)>>> = vec![None; n];
-        for k in 0..pts.len() {
-            out[k] = 0.0;
-            for idx in (0..n).rev() {
-                let grid = px[idx].get_or_insert_with(|| {
-                    let mut v = Vec::new();
-                    self.layers[idx].tiff().pixels_of_grid(pts, nx, ny, &mut v);
-                    v
-                });
-                let (c, r) = grid[k];
-                if self.layers[idx].tiff().covers_pixel(c, r) {
+        out.fill(0.0);
+        // Points not yet given a value, finest layer first.
+        let mut todo: Vec<usize> = (0..pts.len()).collect();
+        let mut rest = Vec::new();
+        let mut px = Vec::new();
+        for &idx in layers.iter().rev() {
+            if todo.is_empty() {
+                break;
+            }
+            let t = self.tiff(idx);
+            t.pixels_of_grid(pts, nx, ny, &mut px);
+            let win = Window::around(self.rd(idx), &px, WINDOW_PIXELS_PER_POINT * pts.len())?;
+            let (wmax, hmax) = ((t.width - 1) as f64, (t.height - 1) as f64);
+            rest.clear();
+            for &k in &todo {
+                let (c, r) = px[k];
+                let inside = c >= 0.0 && c <= wmax && r >= 0.0 && r <= hmax;
+                // c, r ≥ 0: the casts are floors.
+                let (ci, ri) = (c as i64, r as i64);
+                let quad = match &win {
+                    Some(w) if inside => w.quad(ci, ri),
+                    _ => None,
+                };
+                if let Some(q) = quad {
+                    let v = q.map(f64::from);
+                    out[k] = self.height(idx, pts, k, v, c - ci as f64, r - ri as f64);
+                } else if t.covers_pixel(c, r) {
                     let (lat, lon) = if self.stack.layers[idx].vertical == VerticalDatum::Ellipsoid
                     {
                         (f64::NAN, f64::NAN)
@@ -333,11 +469,36 @@ impl StackReader<'_> {
                         pts.lat_lon(k)
                     };
                     out[k] = self.sample_layer_at(idx, lat, lon, c, r)?;
-                    break;
+                } else {
+                    rest.push(k);
                 }
             }
+            std::mem::swap(&mut todo, &mut rest);
         }
         Ok(())
+    }
+
+    /// Height above the ellipsoid of grid point `k` from the bilinear
+    /// interpolation of layer `idx`'s 4 pixels `v` at `(fc, fr)`.
+    #[inline]
+    fn height(
+        &mut self,
+        idx: usize,
+        pts: &mut GridPoints<'_>,
+        k: usize,
+        v: [f64; 4],
+        fc: f64,
+        fr: f64,
+    ) -> f64 {
+        let l = &self.stack.layers[idx];
+        let n = match l.vertical {
+            VerticalDatum::Ellipsoid => 0.0,
+            vd => {
+                let (lat, lon) = pts.lat_lon(k);
+                geoid::undulation(vd, &mut self.geoid, lat, lon, l.geoid_spacing)
+            }
+        };
+        bilinear(v, fc, fr) + n
     }
 
     /// Bilinear sample of layer `idx` at pixel coordinates `(c, r)` of the
@@ -356,7 +517,7 @@ impl StackReader<'_> {
         let mut v = [0f64; 4];
         // The 2 × 2 pixels from one chunk where they lie in one and hold no
         // void; else pixel by pixel (wrapping, clamping, filling).
-        match self.layers[idx].quad(c0, r0)? {
+        match self.rd(idx).quad(c0, r0)? {
             Some(q) if q.iter().all(|x| !x.is_nan()) => {
                 for k in 0..4 {
                     v[k] = q[k] as f64;
@@ -368,21 +529,24 @@ impl StackReader<'_> {
                 }
             }
         }
-        let top = v[0] + (v[1] - v[0]) * fc;
-        let bot = v[2] + (v[3] - v[2]) * fc;
         let l = &self.stack.layers[idx];
         let n = geoid::undulation(l.vertical, &mut self.geoid, lat, lon, l.geoid_spacing);
-        Ok(top + (bot - top) * fr + n)
+        Ok(bilinear(v, fc, fr) + n)
     }
 
     /// [`ElevationStack::pixel`].
     pub fn pixel(&mut self, idx: usize, col: i64, row: i64) -> Result<f64, GeoError> {
-        let v = self.layers[idx].elevation(col, row)?;
+        let v = self.rd(idx).elevation(col, row)?;
         if !v.is_nan() {
             return Ok(v as f64);
         }
-        let t = self.layers[idx].tiff();
+        let t = self.tiff(idx);
         let (c, r) = t.clamp_pixel(col, row);
+        if t.is_exterior(c as i64, r as i64) {
+            // Outside a re-projected raster's footprint: no void to fill
+            // (and no fill window to compute for it).
+            return Ok(0.0);
+        }
         let key = (c as u64) + (r as u64) * t.width as u64;
         let table = self.stack.fill_table(idx, c, r)?;
         Ok(table.get(&key).copied().unwrap_or(0.0))
@@ -391,13 +555,131 @@ impl StackReader<'_> {
     /// The value of the next coarser layer covering the position of pixel
     /// `(col, row)` of layer `idx`, if any.
     fn coarse_under(&mut self, idx: usize, col: i64, row: i64) -> Result<Option<f64>, GeoError> {
-        let (lat, lon) = self.layers[idx].tiff().position_of(col, row);
-        for j in (0..idx).rev() {
-            if self.layers[j].tiff().covers(lat, lon) {
+        let (lat, lon) = self.tiff(idx).position_of(col, row);
+        let near = self.stack.index.near_point(lat, lon);
+        for j in near.into_iter().filter(|&j| j < idx).rev() {
+            if self.tiff(j).covers(lat, lon) {
                 return self.sample_layer(j, lat, lon).map(Some);
             }
         }
         Ok(None)
+    }
+}
+
+/// A counting semaphore (std has none): at most `n` holders at once.
+struct Permits {
+    free: Mutex<usize>,
+    freed: parking_lot::Condvar,
+}
+
+/// A held [`Permits`] permit, given back when dropped.
+struct Permit<'a>(&'a Permits);
+
+impl Permits {
+    fn new(n: usize) -> Permits {
+        Permits {
+            free: Mutex::new(n.max(1)),
+            freed: parking_lot::Condvar::new(),
+        }
+    }
+
+    fn acquire(&self) -> Permit<'_> {
+        let mut free = self.free.lock();
+        while *free == 0 {
+            self.freed.wait(&mut free);
+        }
+        *free -= 1;
+        Permit(self)
+    }
+}
+
+impl Drop for Permit<'_> {
+    fn drop(&mut self) {
+        *self.0.free.lock() += 1;
+        self.0.freed.notify_one();
+    }
+}
+
+/// Bilinear interpolation of pixels `v` (`(c0, r0)`, `(c0+1, r0)`,
+/// `(c0, r0+1)`, `(c0+1, r0+1)`) at fractions `(fc, fr)` from the first.
+#[inline]
+pub fn bilinear(v: [f64; 4], fc: f64, fr: f64) -> f64 {
+    let top = v[0] + (v[1] - v[0]) * fc;
+    let bot = v[2] + (v[3] - v[2]) * fc;
+    top + (bot - top) * fr
+}
+
+/// Largest [`Window`] read for a grid, in pixels per grid point (a coarse
+/// block over a fine raster is sampled pixel by pixel instead).
+const WINDOW_PIXELS_PER_POINT: usize = 16;
+
+/// A layer's raw pixels (NaN: void or outside the footprint) around the
+/// points of one grid, copied from its chunks once.
+struct Window {
+    c0: i64,
+    r0: i64,
+    w: i64,
+    h: i64,
+    data: Vec<f32>,
+}
+
+impl Window {
+    /// The pixels around the points of `grid` inside the raster, unless
+    /// none is or they would take more than `max` pixels.
+    fn around(
+        rd: &mut TiffReader<'_>,
+        grid: &[(f64, f64)],
+        max: usize,
+    ) -> Result<Option<Window>, GeoError> {
+        let t = rd.tiff();
+        let (wmax, hmax) = ((t.width - 1) as f64, (t.height - 1) as f64);
+        let (mut c_lo, mut c_hi, mut r_lo, mut r_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for &(c, r) in grid {
+            if c >= 0.0 && c <= wmax && r >= 0.0 && r <= hmax {
+                c_lo = c_lo.min(c);
+                c_hi = c_hi.max(c);
+                r_lo = r_lo.min(r);
+                r_hi = r_hi.max(r);
+            }
+        }
+        if c_lo > c_hi {
+            return Ok(None);
+        }
+        // Non-negative: the casts are floors.
+        let (c0, r0) = (c_lo as u32, r_lo as u32);
+        let c1 = (c_hi as u32 + 1).min(t.width - 1);
+        let r1 = (r_hi as u32 + 1).min(t.height - 1);
+        let (w, h) = (c1 - c0 + 1, r1 - r0 + 1);
+        if w as usize * h as usize > max {
+            return Ok(None);
+        }
+        let mut data = Vec::new();
+        rd.window((c0, r0), (w, h), &mut data)?;
+        Ok(Some(Window {
+            c0: c0 as i64,
+            r0: r0 as i64,
+            w: w as i64,
+            h: h as i64,
+            data,
+        }))
+    }
+
+    /// Pixels `(c, r)`, `(c+1, r)`, `(c, r+1)`, `(c+1, r+1)` where all 4
+    /// lie in the window and are valued.
+    #[inline]
+    fn quad(&self, c: i64, r: i64) -> Option<[f32; 4]> {
+        let (x, y) = (c - self.c0, r - self.r0);
+        if x < 0 || y < 0 || x + 1 >= self.w || y + 1 >= self.h {
+            return None;
+        }
+        let (i, w) = ((y * self.w + x) as usize, self.w as usize);
+        let q = [
+            *self.data.get(i)?,
+            *self.data.get(i + 1)?,
+            *self.data.get(i + w)?,
+            *self.data.get(i + w + 1)?,
+        ];
+        q.iter().all(|v| !v.is_nan()).then_some(q)
     }
 }
 
@@ -423,12 +705,40 @@ impl ElevationStack {
         let slot = self.fills[idx].lock().entry(key).or_default().clone();
         let mut slot = slot.lock();
         if let Some(tb) = &*slot {
+            self.kept.lock().lru.promote(&(idx, key));
             return Ok(tb.clone());
         }
-        let _one = self.computing[idx].lock();
+        let permit = self.computing[idx].acquire();
         let tb = Arc::new(self.compute_fill(idx, whole, key, tile, margin)?);
+        drop(permit);
         *slot = Some(tb.clone());
+        drop(slot);
+        self.keep(idx, key, tb.len() * FILL_TABLE_BYTES_PER_VOID);
         Ok(tb)
+    }
+
+    /// Count a new fill table in the kept set and evict the least recently
+    /// used ones over the budget (never the newest).
+    fn keep(&self, idx: usize, key: (u32, u32), bytes: usize) {
+        let mut k = self.kept.lock();
+        if let Some(old) = k.lru.put((idx, key), bytes) {
+            k.bytes -= old;
+        }
+        k.bytes += bytes;
+        while k.bytes > self.fill_budget && k.lru.len() > 1 {
+            match k.lru.pop_lru() {
+                Some(((l, old_key), b)) => {
+                    k.bytes -= b;
+                    self.fills[l].lock().remove(&old_key);
+                }
+                None => break,
+            }
+        }
+    }
+
+    /// Bytes of the fill tables kept now.
+    pub fn kept_fill_bytes(&self) -> usize {
+        self.kept.lock().bytes
     }
 
     /// Delta surface fill of one window of layer `idx` (see the module
@@ -469,25 +779,47 @@ impl ElevationStack {
         };
         let (w, h) = ((c1 - c0) as usize, (r1 - r0) as usize);
         let mut rd = self.reader();
-        let mut raw = vec![0f64; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                raw[y * w + x] = rd.layers[idx].elevation(c0 + x as i64, r0 + y as i64)? as f64;
+        let mut raw = Vec::new();
+        if c0 >= 0 && c1 <= w_all {
+            rd.rd(idx)
+                .window((c0 as u32, r0 as u32), (w as u32, h as u32), &mut raw)?;
+        } else {
+            // Columns wrap (a global raster's window across the antimeridian).
+            raw.resize(w * h, 0.0);
+            for y in 0..h {
+                for x in 0..w {
+                    raw[y * w + x] = rd.rd(idx).elevation(c0 + x as i64, r0 + y as i64)?;
+                }
             }
         }
-        // Delta field: known on the valid pixels bordering a void, unknown
-        // (NaN) on the voids; other valid pixels do not enter the harmonic
-        // fill and are left unknown too (the push-pull guess fills them).
-        let mut delta = vec![f64::NAN; w * h];
-        let mut base = vec![0f64; w * h];
-        let mut voids = Vec::new();
         // Voids: no-data pixels, except outside a re-projected raster's
         // footprint (left unknown: neither void nor border).
         let is_void: Vec<bool> = (0..w * h)
             .map(|i| raw[i].is_nan() && !t.is_exterior(c0 + (i % w) as i64, r0 + (i / w) as i64))
             .collect();
-        for y in 0..h {
-            for x in 0..w {
+        // The fill is solved on the voids' bounding box and the pixels
+        // bordering it: every void's 4 neighbours lie in it (or outside the
+        // window, a mirror either way), so the harmonic system is the same.
+        let (mut x_lo, mut x_hi, mut y_lo, mut y_hi) = (usize::MAX, 0, usize::MAX, 0);
+        for (i, _) in is_void.iter().enumerate().filter(|v| *v.1) {
+            let (x, y) = (i % w, i / w);
+            (x_lo, x_hi, y_lo, y_hi) = (x_lo.min(x), x_hi.max(x), y_lo.min(y), y_hi.max(y));
+        }
+        let mut table = FillTable::new();
+        if x_lo > x_hi {
+            return Ok(table);
+        }
+        let (x_lo, y_lo) = (x_lo.saturating_sub(1), y_lo.saturating_sub(1));
+        let (x_hi, y_hi) = ((x_hi + 1).min(w - 1), (y_hi + 1).min(h - 1));
+        let (sw, sh) = (x_hi - x_lo + 1, y_hi - y_lo + 1);
+        // Delta field: known on the valid pixels bordering a void, unknown
+        // (NaN) on the voids; other valid pixels do not enter the harmonic
+        // fill and are left unknown too (the push-pull guess fills them).
+        let mut delta = vec![f64::NAN; sw * sh];
+        let mut base = vec![0f64; sw * sh];
+        let mut voids = Vec::new();
+        for y in y_lo..=y_hi {
+            for x in x_lo..=x_hi {
                 let i = y * w + x;
                 let void = is_void[i];
                 let border = !raw[i].is_nan()
@@ -496,31 +828,28 @@ impl ElevationStack {
                         || (y > 0 && is_void[i - w])
                         || (y + 1 < h && is_void[i + w]));
                 if void || border {
+                    let si = (y - y_lo) * sw + (x - x_lo);
                     if void {
-                        voids.push(i);
+                        voids.push(si);
                     }
                     let b = rd
                         .coarse_under(idx, c0 + x as i64, r0 + y as i64)?
                         .unwrap_or(0.0);
-                    base[i] = b;
+                    base[si] = b;
                     if border {
-                        delta[i] = raw[i] - b;
+                        delta[si] = raw[i] as f64 - b;
                     }
                 }
             }
         }
-        let mut table = FillTable::new();
-        if voids.is_empty() {
-            return Ok(table);
-        }
-        crate::voidfill::harmonic_fill(&mut delta, w, h, &voids);
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
+        crate::voidfill::harmonic_fill(&mut delta, sw, sh, &voids);
+        for y in y_lo..=y_hi {
+            for x in x_lo..=x_hi {
+                let (si, i) = ((y - y_lo) * sw + (x - x_lo), y * w + x);
                 let (c, r) = (c0 + x as i64, r0 + y as i64);
                 let inside = c >= keep.0 && c < keep.1 && r >= keep.2 && r < keep.3;
                 if is_void[i] && inside {
-                    table.insert(c as u64 + r as u64 * t.width as u64, base[i] + delta[i]);
+                    table.insert(c as u64 + r as u64 * t.width as u64, base[si] + delta[si]);
                 }
             }
         }
@@ -543,6 +872,9 @@ pub fn footprint_intersects(t: &GeoTiff, b: BlockId) -> bool {
                 s: s0 + (s1 - s0) * i as f64 / n as f64,
                 t: t0 + (t1 - t0) * j as f64 / n as f64,
             };
+            if !t.box_holds(fc.direction()) {
+                continue;
+            }
             let (la, lo) = fc.to_lat_lon();
             if t.covers(la.to_degrees(), lo.to_degrees()) {
                 return true;
@@ -550,20 +882,9 @@ pub fn footprint_intersects(t: &GeoTiff, b: BlockId) -> bool {
         }
     }
     // Raster points inside the block (a raster smaller than the block).
-    let (w, h) = (t.width as i64 - 1, t.height as i64 - 1);
-    for j in 0..=n {
-        for i in 0..=n {
-            let (la, lo) = t.position_of(w * i / n, h * j / n);
-            if !la.is_finite() {
-                continue;
-            }
-            let fc = FaceCoord::from_lat_lon(la.to_radians(), lo.to_radians());
-            if fc.face == b.face && fc.s >= s0 && fc.s <= s1 && fc.t >= t0 && fc.t <= t1 {
-                return true;
-            }
-        }
-    }
-    false
+    t.lattice_points()
+        .iter()
+        .any(|fc| fc.face == b.face && fc.s >= s0 && fc.s <= s1 && fc.t >= t0 && fc.t <= t1)
 }
 
 /// Face coordinates of the elevation samples of a block, per column/row.
@@ -612,7 +933,19 @@ pub struct ColourSource {
 impl ColourSource {
     /// Open a colour raster.
     pub fn open(path: &Path, cache_bytes: usize) -> Result<ColourSource, GeoError> {
+        ColourSource::open_capped(path, cache_bytes, u8::MAX, &mut |_| {})
+    }
+
+    /// [`ColourSource::open`] for a tree no deeper than `max_level` (a
+    /// finer raster's overview, as [`overview_for`]).
+    pub fn open_capped(
+        path: &Path,
+        cache_bytes: usize,
+        max_level: u8,
+        note: &mut dyn FnMut(String),
+    ) -> Result<ColourSource, GeoError> {
         let tiff = GeoTiff::open(path, cache_bytes.max(1 << 20))?;
+        let tiff = overview_for(tiff, max_level, COLOUR_WIDTH, note)?;
         if tiff.kind.is_elevation() {
             return Err(GeoError::Role {
                 path: path.to_path_buf(),
@@ -697,18 +1030,12 @@ impl GridSource for RasterSource {
                 .map(|i| plane_from_angle(sample_coord(o as u64 * w as u64 + i, n)))
                 .collect()
         };
-        let (us, vs) = (axis(b.x), axis(b.y));
-        let mut dirs = Vec::with_capacity((w + 1) * (w + 1));
-        for &v in &vs {
-            for &u in &us {
-                dirs.push(normalize(b.face.cube_point(u, v)));
-            }
-        }
-        let mut pts = GridPoints::new(&dirs);
-        let mut m = vec![0f64; dirs.len()];
+        let mut pts = GridPoints::from_axes(b.face, axis(b.x), axis(b.y));
+        let mut m = vec![0f64; pts.len()];
+        let near = self.elevation.layers_near(b);
         self.elevation
             .reader()
-            .sample_grid(&mut pts, w + 1, w + 1, &mut m)?;
+            .sample_grid(&near, &mut pts, w + 1, w + 1, &mut m)?;
         for (o, v) in out.iter_mut().zip(&m) {
             *o = quantise(*v, self.scale);
         }
@@ -726,15 +1053,8 @@ impl GridSource for RasterSource {
                 .map(|i| plane_from_angle((o as f64 * w as f64 + i as f64 + 0.5) / n))
                 .collect()
         };
-        let (us, vs) = (axis(b.x), axis(b.y));
-        let mut dirs = Vec::with_capacity(w * w);
-        for &v in &vs {
-            for &u in &us {
-                dirs.push(normalize(b.face.cube_point(u, v)));
-            }
-        }
         let mut px = Vec::new();
-        let mut pts = GridPoints::new(&dirs);
+        let mut pts = GridPoints::from_axes(b.face, axis(b.x), axis(b.y));
         c.tiff.pixels_of_grid(&mut pts, w, w, &mut px);
         let mut rd = c.tiff.reader();
         let mut out = Vec::with_capacity(w * w);

@@ -626,3 +626,266 @@ fn projection_families_map_like_proj() {
         );
     }
 }
+
+/// The leaves of a raster plan's elevation tree, sorted.
+fn sorted_leaves(p: &planet_preprocess::plan::Plan) -> Vec<planet_core::BlockId> {
+    match p {
+        planet_preprocess::plan::Plan::Explicit { split, .. } => {
+            let mut l = planet_preprocess::plan::leaves(split);
+            l.sort();
+            l
+        }
+        _ => panic!("raster plans are explicit"),
+    }
+}
+
+/// Open file descriptors of this process (Linux), if readable.
+fn open_fds() -> Option<usize> {
+    std::fs::read_dir("/proc/self/fd").ok().map(|d| d.count())
+}
+
+/// Many tiles: the real tile cut by `gdal_translate -srcwin` into 16 × 16
+/// tiles of 76 pixels (one pixel shared with each neighbour, as SRTM tiles
+/// share their edges), given as a directory over ETOPO5. Every leaf grid
+/// sample whose source pixels hold no void equals the one built from the
+/// whole tile over ETOPO5 (the tiles, finer, win over ETOPO5 everywhere
+/// they cover, and bilinear inside any tile reads the same 4 pixels), the
+/// trees have the same shape, the raster readers keep at most
+/// `MAX_IDLE_DECODERS` files open, and the command-line build from the
+/// directory stays under its `--max-memory` and verifies.
+#[test]
+fn a_directory_of_many_tiles_builds_like_the_whole_tile() {
+    use planet_preprocess::build::GridSource;
+    use planet_preprocess::geotiff::MAX_IDLE_DECODERS;
+    use planet_preprocess::source::{elevation_sample_lat_lon, ELEVATION_WIDTH};
+    let Some(rainier) = rainier() else {
+        eprintln!("note: ../shared/data not found, test skipped");
+        return;
+    };
+    let etopo = rainier.with_file_name("earth_etopo5_30arcmin.tif");
+    let dir = tempfile::tempdir().unwrap();
+    let tiles = dir.path().join("tiles");
+    std::fs::create_dir(&tiles).unwrap();
+    let (n, step, size) = (16usize, 75usize, 76usize);
+    let jobs: Vec<(usize, usize)> = (0..n).flat_map(|j| (0..n).map(move |i| (i, j))).collect();
+    std::thread::scope(|sc| {
+        for part in jobs.chunks(jobs.len().div_ceil(4)) {
+            let (rainier, tiles) = (&rainier, &tiles);
+            sc.spawn(move || {
+                for &(i, j) in part {
+                    let out = tiles.join(format!("r{j:02}/t{j:02}_{i:02}.tif"));
+                    std::fs::create_dir_all(out.parent().unwrap()).unwrap();
+                    let (x, y, sz) = (
+                        (i * step).to_string(),
+                        (j * step).to_string(),
+                        size.to_string(),
+                    );
+                    tool(
+                        "gdal_translate",
+                        &["-q", "-srcwin", &x, &y, &sz, &sz, s(rainier), s(&out)],
+                        "",
+                    );
+                }
+            });
+        }
+    });
+    let tile_paths = planet_preprocess::inputs::expand(std::slice::from_ref(&tiles)).unwrap();
+    assert_eq!(tile_paths.len(), n * n);
+    let opts = RasterOptions {
+        vertical: vec![VerticalDatum::Ellipsoid],
+        ..Default::default()
+    };
+    let (whole, whole_plan) =
+        planet_preprocess::open_rasters(&[etopo.as_path(), rainier.as_path()], None, &opts)
+            .unwrap();
+    let fds_before = open_fds();
+    let mut stack: Vec<&Path> = vec![etopo.as_path()];
+    stack.extend(tile_paths.iter().map(|p| p.as_path()));
+    let (tiled, tiled_plan) = planet_preprocess::open_rasters(&stack, None, &opts).unwrap();
+    assert_eq!(tiled.elevation.layers.len(), n * n + 1);
+    let deepest: Vec<_> = sorted_leaves(&whole_plan)
+        .into_iter()
+        .filter(|b| b.level == whole_plan.max_level())
+        .collect();
+    assert_eq!(
+        sorted_leaves(&whole_plan),
+        sorted_leaves(&tiled_plan),
+        "tree shapes differ"
+    );
+    let w = ELEVATION_WIDTH;
+    let src = &whole.elevation.layers[1].tiff;
+    let (mut a, mut b) = (vec![0i16; (w + 1) * (w + 1)], vec![0i16; (w + 1) * (w + 1)]);
+    let (mut same, mut compared) = (0usize, 0usize);
+    for &blk in &deepest {
+        whole.elevation_leaf(blk, &mut a).unwrap();
+        tiled.elevation_leaf(blk, &mut b).unwrap();
+        for j in 0..=w {
+            for i in 0..=w {
+                let (la, lo) = elevation_sample_lat_lon(blk, w, i, j);
+                let (c, r) = src.pixel_of(la.to_degrees(), lo.to_degrees());
+                let (c0, r0) = (c.floor() as i64, r.floor() as i64);
+                let clean = (0..2)
+                    .all(|dy| (0..2).all(|dx| !src.elevation(c0 + dx, r0 + dy).unwrap().is_nan()));
+                if !clean {
+                    continue;
+                }
+                compared += 1;
+                let k = j * (w + 1) + i;
+                assert_eq!(a[k], b[k], "{blk:?} ({i}, {j}) at {la} {lo}");
+                same += 1;
+            }
+        }
+    }
+    assert!(compared > 500_000, "{compared} samples compared");
+    // Point samples (the index's point queries) agree too.
+    let (la0, la1, lo0, lo1) = src.bounds();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(16);
+    let mut points = 0;
+    for _ in 0..3000 {
+        let (la, lo) = (rng.random_range(la0..la1), rng.random_range(lo0..lo1));
+        let (c, r) = src.pixel_of(la, lo);
+        let (c0, r0) = (c.floor() as i64, r.floor() as i64);
+        if (0..2).all(|dy| (0..2).all(|dx| !src.elevation(c0 + dx, r0 + dy).unwrap().is_nan())) {
+            let (x, y) = (
+                whole.elevation.sample(la, lo).unwrap(),
+                tiled.elevation.sample(la, lo).unwrap(),
+            );
+            // The same 4 pixels; the fractions differ by rounding only
+            // (pixel coordinates taken from another tile's origin).
+            assert!((x - y).abs() < 1e-6, "point {la} {lo}: {x} vs {y}");
+            points += 1;
+        }
+    }
+    assert!(points > 2500, "{points}");
+    eprintln!(
+        "{same} of {compared} void-free samples equal over {} leaves",
+        deepest.len()
+    );
+    if let (Some(before), Some(after)) = (fds_before, open_fds()) {
+        assert!(
+            after <= before + MAX_IDLE_DECODERS + 16,
+            "{} files open for {} tiles",
+            after.saturating_sub(before),
+            n * n
+        );
+    }
+    drop(tiled);
+    // The command line: a directory, under a tight memory bound.
+    let db = dir.path().join("tiles.db");
+    let bound_mib = 32u64;
+    let out = planet_build(&[
+        "build",
+        "--elevation",
+        s(&etopo),
+        s(&tiles),
+        "--vertical-datum",
+        "ellipsoid",
+        "--max-memory",
+        &bound_mib.to_string(),
+        "--report-memory",
+        "--quiet",
+        "--out",
+        s(&db),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    if let Some(kib) = text
+        .lines()
+        .find_map(|l| l.strip_prefix("peak_rss_kib "))
+        .and_then(|v| v.trim().parse::<u64>().ok())
+    {
+        eprintln!("{} tiles: peak {kib} KiB, bound {bound_mib} MiB", n * n);
+        assert!(
+            kib < bound_mib * 1024,
+            "peak {kib} KiB over {bound_mib} MiB"
+        );
+    }
+    planet_preprocess::db::verify(&db).unwrap();
+}
+
+/// A Cloud-Optimized GeoTIFF (`gdal_translate -of COG`: 256² tiles, LZW,
+/// overviews 600², 300², 150²) reads pixel for pixel like the tile it was
+/// made from; a tree as deep as the tile reads the full image, and one
+/// capped two levels above it reads the 300² overview (said in a note),
+/// whose every leaf grid equals the one built from that overview extracted
+/// by GDAL itself (`gdal_translate -ovr 1`).
+#[test]
+fn cog_overviews_serve_coarser_trees() {
+    use planet_preprocess::build::GridSource;
+    use planet_preprocess::source::ELEVATION_WIDTH;
+    let Some(rainier) = rainier() else {
+        eprintln!("note: ../shared/data not found, test skipped");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cog = dir.path().join("rainier-cog.tif");
+    let ovr = dir.path().join("rainier-ovr1.tif");
+    tool(
+        "gdal_translate",
+        &[
+            "-q",
+            "-of",
+            "COG",
+            "-co",
+            "BLOCKSIZE=256",
+            s(&rainier),
+            s(&cog),
+        ],
+        "",
+    );
+    tool("gdal_translate", &["-q", "-ovr", "1", s(&cog), s(&ovr)], "");
+    let plain = GeoTiff::open(&rainier, 64 << 20).unwrap();
+    let tiled = GeoTiff::open(&cog, 64 << 20).unwrap();
+    let sizes: Vec<(u32, u32)> = tiled.overviews().iter().map(|o| (o.1, o.2)).collect();
+    assert_eq!(sizes, vec![(600, 600), (300, 300), (150, 150)]);
+    for r in 0..plain.height as i64 {
+        for c in 0..plain.width as i64 {
+            let (a, b) = (
+                plain.elevation(c, r).unwrap(),
+                tiled.elevation(c, r).unwrap(),
+            );
+            assert!(
+                a == b || (a.is_nan() && b.is_nan()),
+                "pixel ({c}, {r}): {a} vs {b}"
+            );
+        }
+    }
+    let open = |p: &Path, max_level: u8, notes: &mut Vec<String>| {
+        planet_preprocess::open_rasters_noting(
+            &[p],
+            None,
+            &RasterOptions {
+                max_level,
+                vertical: vec![VerticalDatum::Ellipsoid],
+                ..Default::default()
+            },
+            &mut |n| notes.push(n),
+        )
+        .unwrap()
+    };
+    let mut notes = Vec::new();
+    let (full, _) = open(&cog, 16, &mut notes);
+    assert_eq!(full.elevation.layers[0].tiff.width, 1201);
+    assert!(notes.iter().all(|n| !n.contains("overview")), "{notes:?}");
+    let (capped, plan) = open(&cog, 9, &mut notes);
+    let (extracted, plan_x) = open(&ovr, 9, &mut Vec::new());
+    let t = &capped.elevation.layers[0].tiff;
+    assert_eq!((t.width, t.height, t.image()), (300, 300, 2));
+    assert!(
+        notes.iter().any(|n| n.contains("overview 300 × 300")),
+        "{notes:?}"
+    );
+    assert_eq!(plan.max_level(), 9);
+    assert_eq!(sorted_leaves(&plan), sorted_leaves(&plan_x));
+    let w = ELEVATION_WIDTH;
+    let (mut a, mut b) = (vec![0i16; (w + 1) * (w + 1)], vec![0i16; (w + 1) * (w + 1)]);
+    for blk in sorted_leaves(&plan).into_iter().filter(|b| b.level == 9) {
+        capped.elevation_leaf(blk, &mut a).unwrap();
+        extracted.elevation_leaf(blk, &mut b).unwrap();
+        assert_eq!(a, b, "{blk:?}");
+    }
+}

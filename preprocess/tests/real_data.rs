@@ -301,3 +301,65 @@ fn real_codecs_meet_their_bounds() {
         assert!(psnr >= 42.0, "colour PSNR {psnr}");
     }
 }
+
+/// A leaf's grid, sampled a block at a time (pixel windows copied once,
+/// [`planet_preprocess::source::StackReader::sample_grid`]), equals the
+/// point-by-point samples of the same stack (pixel by pixel, wrapping,
+/// clamping, void filling) at every sample of every leaf of the Rainier
+/// tile over ETOPO5 (both geographic: exact mappings either way), voids
+/// and tile edges included.
+#[test]
+fn block_grids_equal_point_samples() {
+    use planet_preprocess::build::GridSource;
+    use planet_preprocess::source::{quantise, ELEVATION_WIDTH};
+    let Some(d) = data_dir() else {
+        eprintln!("note: ../shared/data not found, real-data test skipped");
+        return;
+    };
+    let etopo = d.join("earth_etopo5_30arcmin.tif");
+    let rainier = d.join("mt_rainier_90m.tif");
+    let (src, plan) = planet_preprocess::open_rasters(
+        &[etopo.as_path(), rainier.as_path()],
+        None,
+        &RasterOptions::default(),
+    )
+    .unwrap();
+    let planet_preprocess::plan::Plan::Explicit { split, .. } = &plan else {
+        panic!("raster plans are explicit");
+    };
+    let deepest: Vec<BlockId> = planet_preprocess::plan::leaves(split)
+        .into_iter()
+        .filter(|b| b.level == plan.max_level())
+        .collect();
+    assert!(deepest.len() > 200, "{}", deepest.len());
+    let w = ELEVATION_WIDTH;
+    let mut grid = vec![0i16; (w + 1) * (w + 1)];
+    let (mut n, mut voids) = (0usize, 0usize);
+    let rainier_layer = &src.elevation.layers[src.elevation.layers.len() - 1].tiff;
+    for &b in &deepest {
+        src.elevation_leaf(b, &mut grid).unwrap();
+        for j in 0..=w {
+            for i in 0..=w {
+                let (la, lo) = elevation_sample_lat_lon(b, w, i, j);
+                let (la, lo) = (la.to_degrees(), lo.to_degrees());
+                let want = quantise(src.elevation.sample(la, lo).unwrap(), src.scale);
+                assert_eq!(grid[j * (w + 1) + i], want, "{b:?} sample ({i}, {j})");
+                let (c, r) = rainier_layer.pixel_of(la, lo);
+                if rainier_layer.covers(la, lo)
+                    && rainier_layer
+                        .elevation(c.floor() as i64, r.floor() as i64)
+                        .unwrap()
+                        .is_nan()
+                {
+                    voids += 1;
+                }
+                n += 1;
+            }
+        }
+    }
+    eprintln!(
+        "{n} samples of {} leaves equal, {voids} next to a void",
+        deepest.len()
+    );
+    assert!(voids > 100, "the tile's voids were sampled: {voids}");
+}
