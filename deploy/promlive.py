@@ -191,7 +191,7 @@ def cmd_alert(url: str, name: str, timeout: float) -> int:
 
 
 def cmd_value(url: str, expr: str) -> int:
-    v = sum(v for v in query(url, expr) if math.isfinite(v))
+    v = sum((v for v in query(url, expr) if math.isfinite(v)), 0.0)
     print(int(v) if v.is_integer() else f"{v:.6g}")
     return 0
 
