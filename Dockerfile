@@ -8,9 +8,21 @@
 #     -v "$PWD/deploy/data:/data:ro" \
 #     -v "$PWD/deploy/server.toml:/etc/planet/server.toml:ro" \
 #     -v "$PWD/deploy/tls:/etc/planet/tls:ro" planet-server:dev
+#
+# Without a registry (how deploy/container-test.sh builds it): binaries built
+# on the host, a base image made with debootstrap:
+#
+#   podman build --target runtime-prebuilt \
+#     --build-arg RUNTIME_IMAGE=localhost/debian:bookworm-slim \
+#     --build-context prebuilt=DIR_WITH_planet-server_AND_planet-build \
+#     -t planet-server:dev .
+
+# Base images (override with --build-arg, e.g. a mirror or a local import).
+ARG RUST_IMAGE=rust:1-bookworm
+ARG RUNTIME_IMAGE=debian:bookworm-slim
 
 ############################ builder ############################
-FROM rust:1-bookworm AS builder
+FROM ${RUST_IMAGE} AS builder
 WORKDIR /src
 
 # The whole workspace is needed: cargo resolves every member listed in the
@@ -23,11 +35,14 @@ COPY . .
 RUN --mount=type=cache,id=planet-cargo-registry,target=/usr/local/cargo/registry \
     --mount=type=cache,id=planet-target,target=/src/target \
     cargo build --release --locked -p planet-server -p planet-preprocess \
- && install -D -m 0755 target/release/planet-server /out/planet-server \
- && install -D -m 0755 target/release/planet-build /out/planet-build
+ && install -D -s -m 0755 target/release/planet-server /out/planet-server \
+ && install -D -s -m 0755 target/release/planet-build /out/planet-build
 
 ############################ runtime ############################
-FROM debian:bookworm-slim AS runtime
+# Everything of the runtime image except the binaries; the two stages below
+# add them, from the builder stage (the default target, last in this file)
+# or from a build context named "prebuilt" (runtime-prebuilt).
+FROM ${RUNTIME_IMAGE} AS runtime-base
 
 ARG VERSION=dev
 LABEL org.opencontainers.image.title="planet-server" \
@@ -47,8 +62,6 @@ RUN groupadd --system --gid 10001 planet \
       --home-dir /nonexistent --shell /usr/sbin/nologin planet \
  && mkdir -p /data /etc/planet
 
-COPY --from=builder /out/planet-server /out/planet-build /usr/local/bin/
-
 # /data: database files (*.planetdb), mounted read-only.
 # /etc/planet: server.toml, tls/, tokens/, mounted read-only.
 VOLUME ["/data", "/etc/planet"]
@@ -66,3 +79,14 @@ HEALTHCHECK --interval=15s --timeout=3s --start-period=20s --retries=3 \
   CMD ["planet-server", "healthcheck", "--url", "http://127.0.0.1:9100/healthz"]
 
 CMD ["planet-server", "--config", "/etc/planet/server.toml"]
+
+# Binaries built on the host (release, stripped), e.g. where no Rust image
+# can be pulled: --build-context prebuilt=DIR --target runtime-prebuilt.
+FROM runtime-base AS runtime-prebuilt
+# "prebuilt" is a named build context (--build-context), not a stage.
+# hadolint ignore=DL3022
+COPY --from=prebuilt planet-server planet-build /usr/local/bin/
+
+# The default target: binaries from the builder stage.
+FROM runtime-base AS runtime
+COPY --from=builder /out/planet-server /out/planet-build /usr/local/bin/

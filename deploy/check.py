@@ -12,6 +12,11 @@ exits 1 when any check failed:
   check.py promql-rules OUT      write dashboard queries as a rule file for promtool
   check.py metrics [SCRAPE]      queried names/labels against metrics-contract.txt
                                  and, if given, a /metrics scrape
+  check.py probes                the Deployment's probes: KIND PATH PORT per line
+  check.py grace                 the shortest grace period of k8s and compose (s)
+  check.py agree IMAGE_JSON KIB_PER_CONNECTION DRAIN_MS
+                                 image (podman image inspect), k8s and compose
+                                 agree; resources cover measured memory
 """
 from __future__ import annotations
 
@@ -95,28 +100,68 @@ def dockerfile_instructions(text: str) -> list[tuple[str, str]]:
     return out
 
 
+def dockerfile_stages(ins: list[tuple[str, str]]) -> tuple[dict[str, str], list[dict]]:
+    """Global ARG defaults and the stages: {name, base (ARGs substituted), ins}."""
+    args: dict[str, str] = {}
+    stages: list[dict] = []
+    for w, a in ins:
+        if w == "FROM":
+            m = re.match(r"(\S+)(?:\s+AS\s+(\S+))?", a, re.I)
+            base = re.sub(r"\$\{?(\w+)\}?", lambda v: args.get(v.group(1), v.group(0)), m.group(1) if m else a)
+            stages.append({"name": (m.group(2) or "") if m else "", "base": base, "ins": []})
+        elif stages:
+            stages[-1]["ins"].append((w, a))
+        elif w == "ARG":
+            k, _, v = a.partition("=")
+            args[k.strip()] = v.strip()
+    return args, stages
+
+
+def stage_chain(stages: list[dict], name: str) -> list[tuple[str, str]]:
+    """Instructions of stage NAME with those of the stages it is built FROM."""
+    by_name = {st["name"]: st for st in stages}
+    st = by_name.get(name)
+    if st is None:
+        return []
+    return stage_chain(stages, st["base"]) + st["ins"]
+
+
 def cmd_dockerfile() -> int:
     c = Checker("dockerfile")
     path = ROOT / "Dockerfile"
     if not c.ok(path.is_file(), "Dockerfile exists"):
         return c.done()
     ins = dockerfile_instructions(path.read_text())
-    froms = [(i, a) for i, (w, a) in enumerate(ins) if w == "FROM"]
-    c.ok(len(froms) >= 2, "multi-stage build", f"{len(froms)} FROM")
-    c.ok(bool(froms) and re.match(r"rust:1-bookworm\s+AS\s+builder\b", froms[0][1], re.I) is not None,
-         "builder stage is rust:1-bookworm AS builder", froms[0][1] if froms else "")
-    c.ok(bool(froms) and froms[-1][1].split()[0] == "debian:bookworm-slim",
-         "runtime stage is debian:bookworm-slim", froms[-1][1] if froms else "")
+    args, stages = dockerfile_stages(ins)
+    names = [st["name"] for st in stages]
+    c.ok(len(stages) >= 2, "multi-stage build", f"{len(stages)} FROM")
+    builder = next((st for st in stages if st["name"] == "builder"), None)
+    c.ok(builder is not None and builder["base"] == "rust:1-bookworm",
+         "builder stage: FROM ${RUST_IMAGE} AS builder, RUST_IMAGE defaults to rust:1-bookworm",
+         builder["base"] if builder else "no builder stage")
+    c.ok(bool(stages) and stages[-1]["name"] == "runtime", "the last stage (default target) is runtime", str(names))
+    base = next((st for st in stages if st["name"] == "runtime-base"), None)
+    c.ok(base is not None and base["base"] == "debian:bookworm-slim",
+         "runtime-base: FROM ${RUNTIME_IMAGE}, RUNTIME_IMAGE defaults to debian:bookworm-slim",
+         base["base"] if base else "no runtime-base stage")
+    for st in stages:
+        if st["name"] in ("runtime", "runtime-prebuilt"):
+            c.ok(st["base"] == "runtime-base", f"{st['name']} is built FROM runtime-base", st["base"])
     runs = " ".join(a for w, a in ins if w == "RUN")
     c.ok("cargo build --release --locked -p planet-server -p planet-preprocess" in runs,
          "builder runs cargo build --release --locked -p planet-server -p planet-preprocess")
-    last = ins[froms[-1][0]:] if froms else []
+    copies = {st["name"]: " ".join(a for w, a in st["ins"] if w == "COPY") for st in stages}
+    c.ok("--from=builder" in copies.get("runtime", ""), "runtime copies the binaries from the builder stage")
+    c.ok("--from=prebuilt" in copies.get("runtime-prebuilt", ""),
+         "runtime-prebuilt copies the binaries from the build context named prebuilt")
+    for target in ("runtime", "runtime-prebuilt"):
+        cp = copies.get(target, "")
+        c.ok("planet-server" in cp and "planet-build" in cp and "/usr/local/bin" in cp,
+             f"{target}: planet-server and planet-build copied to /usr/local/bin")
+    last = stage_chain(stages, "runtime")
     installs = re.findall(r"apt-get install ([^&;]*)", " ".join(a for w, a in last if w == "RUN"))
     pkgs = {t for s in installs for t in s.split() if not t.startswith("-")}
     c.ok(pkgs == {"ca-certificates"}, "runtime installs ca-certificates only", f"installs {sorted(pkgs)}")
-    copies = " ".join(a for w, a in last if w == "COPY")
-    c.ok("planet-server" in copies and "planet-build" in copies and "/usr/local/bin" in copies,
-         "planet-server and planet-build copied to /usr/local/bin")
     users = [a for w, a in last if w == "USER"]
     c.ok(bool(users) and users[-1].split(":")[0] in ("10001", "planet"), "runs as non-root user planet (10001)",
          f"USER {users[-1] if users else '(none)'}")
@@ -353,6 +398,14 @@ IDENT = re.compile(r"[a-zA-Z_:][a-zA-Z0-9_:]*")
 MATCHER = re.compile(r'\s*([a-zA-Z_]\w*)\s*(=~|!~|!=|=)\s*"((?:[^"\\]|\\.)*)"\s*,?')
 
 
+def after_string(expr: str, i: int) -> int:
+    """Index just past the PromQL string literal that starts at EXPR[i]."""
+    j = i + 1
+    while j < len(expr) and expr[j] != expr[i]:
+        j += 2 if expr[j] == "\\" else 1
+    return j + 1
+
+
 def selectors(expr: str) -> list[tuple[str, list[tuple[str, str, str]]]]:
     """(metric name, [(label, op, value)]) of every selector naming a planet_*,
     process_* or up series. String literals are skipped."""
@@ -361,10 +414,7 @@ def selectors(expr: str) -> list[tuple[str, list[tuple[str, str, str]]]]:
     while i < n:
         ch = expr[i]
         if ch in "\"'`":
-            j = i + 1
-            while j < n and expr[j] != ch:
-                j += 2 if expr[j] == "\\" else 1
-            i = j + 1
+            i = after_string(expr, i)
             continue
         if ch == "{":  # a bare {..} selector or a matcher block we did not attach: skip it
             depth_end = expr.find("}", i)
@@ -719,6 +769,136 @@ def cmd_k8s() -> int:
     return c.done()
 
 
+# --------------------------------------------------------------------------
+# The image, the Kubernetes manifests and the compose file agree (driven by
+# deploy/container-test.sh with the built image and measured figures)
+
+# The server's longest drain on SIGTERM: shutdown_grace (10 s, in-flight
+# responses), +3 s for connection tasks, +2 s for the endpoint to go idle
+# (server/src/lib.rs, Server::shutdown and the accept loop).
+SERVER_MAX_DRAIN_S = 15
+# Memory per connection measured by `planet-bench load` with 1000 clients
+# (docs/BENCHMARKS.md, "Load (planet-bench load)": 54 KiB anonymous idle,
+# 82 KiB at peak load), in KiB: the peak figure.
+DOCUMENTED_KIB_PER_CONNECTION = 82
+
+
+def deployment_container() -> tuple[dict, dict]:
+    dep = k8s_objects()[("Deployment", "planet-server")]
+    pod = dep["spec"]["template"]["spec"]
+    return pod, pod["containers"][0]
+
+
+def probe_list() -> list[tuple[str, str, str]]:
+    _, ctr = deployment_container()
+    out = []
+    for kind in ("readiness", "liveness", "startup"):
+        g = ctr.get(f"{kind}Probe", {}).get("httpGet", {})
+        if g:
+            out.append((kind, g["path"], str(g["port"])))
+    return out
+
+
+def grace_seconds() -> int:
+    """The shortest grace period the manifests give (k8s, compose)."""
+    pod, _ = deployment_container()
+    compose = load_yaml_docs(DEPLOY / "compose.yaml")[0]["services"]["planet-server"]
+    return min(int(pod["terminationGracePeriodSeconds"]), duration_s(compose.get("stop_grace_period", "10s")))
+
+
+def duration_s(d: str | int) -> int:
+    m = re.fullmatch(r"(?:(\d+)m)?(?:(\d+)s)?", str(d))
+    if isinstance(d, int) or not m or not any(m.groups()):
+        return int(d)
+    return int(m.group(1) or 0) * 60 + int(m.group(2) or 0)
+
+
+def mebibytes(q: str) -> float:
+    units = {"Ki": 1 / 1024, "Mi": 1, "Gi": 1024, "Ti": 1024 * 1024, "K": 1e3 / 2**20, "M": 1e6 / 2**20, "G": 1e9 / 2**20}
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)([KMGT]i?)?", q)
+    if not m:
+        raise ValueError(f"memory quantity {q!r}")
+    return float(m.group(1)) * (units[m.group(2)] if m.group(2) else 1 / 2**20)
+
+
+def cmd_agree(image_json: str, kib_per_conn: float, drain_ms: float) -> int:
+    c = Checker("agree")
+    img = json.loads(Path(image_json).read_text())[0]
+    cfg = img.get("Config", {})
+    pod, ctr = deployment_container()
+    compose = load_yaml_docs(DEPLOY / "compose.yaml")[0]["services"]["planet-server"]
+    sc = {**pod.get("securityContext", {}), **ctr.get("securityContext", {})}
+    kcfg = tomllib.loads(k8s_objects()[("ConfigMap", "planet-server-config")]["data"]["server.toml"])
+    scfg = tomllib.loads((DEPLOY / "server.toml").read_text())
+
+    # image name
+    repo = lambda ref: ref.rsplit("/", 1)[-1].split(":")[0].split("@")[0]  # noqa: E731
+    names = {"image": repo(img.get("RepoTags", ["?"])[0]), "k8s": repo(ctr["image"]), "compose": repo(compose["image"])}
+    c.ok(len(set(names.values())) == 1, f"image repository name is {names['k8s']} everywhere", str(names))
+    # user
+    user = f"{sc.get('runAsUser')}:{sc.get('runAsGroup')}"
+    c.ok(cfg.get("User") == user == compose.get("user"),
+         f"user {user}: image USER, k8s runAsUser/runAsGroup, compose user",
+         f"image {cfg.get('User')}, k8s {user}, compose {compose.get('user')}")
+    # ports
+    img_ports = set(cfg.get("ExposedPorts", {}))
+    k8s_ports = {f"{p['containerPort']}/{p.get('protocol', 'TCP').lower()}" for p in ctr["ports"]}
+    comp_ports = {re.sub(r"^.*:", "", str(p)) for p in compose.get("ports", [])}
+    comp_ports = {p if "/" in p else p + "/tcp" for p in comp_ports}
+    port = lambda a: a.rsplit(":", 1)[1]  # noqa: E731
+    conf_ports = {f"{port(kcfg['listen'])}/udp", f"{port(kcfg['metrics'])}/tcp"}
+    sconf_ports = {f"{port(scfg['listen'])}/udp", f"{port(scfg['metrics'])}/tcp"}
+    c.ok(img_ports == k8s_ports == comp_ports == conf_ports == sconf_ports,
+         f"ports {sorted(img_ports)}: image EXPOSE, k8s containerPorts, compose ports, both server.toml",
+         f"k8s {sorted(k8s_ports)}, compose {sorted(comp_ports)}, configmap {sorted(conf_ports)}, server.toml {sorted(sconf_ports)}")
+    # probes and HEALTHCHECK
+    hc = " ".join((img.get("Healthcheck") or cfg.get("Healthcheck") or {}).get("Test", []))
+    m = re.search(r"http://127\.0\.0\.1:(\d+)(/\S*)", hc)
+    probes = {k: (path, p) for k, path, p in probe_list()}
+    metrics_port = port(kcfg["metrics"])
+    named = {p["name"]: str(p["containerPort"]) for p in ctr["ports"]}
+    c.ok(bool(m) and m.group(1) == metrics_port and (m.group(2), metrics_port) in
+         {(path, named.get(p, p)) for k, (path, p) in probes.items() if k != "readiness"},
+         "image HEALTHCHECK URL is the liveness/startup probe's path and port", f"{hc} vs {probes}")
+    c.ok(probes.get("readiness", ("", ""))[0] == "/readyz" and named.get(probes["readiness"][1], probes["readiness"][1]) == metrics_port,
+         "readiness probe GET /readyz on the metrics port")
+    # command
+    cmd = cfg.get("Cmd") or []
+    c.ok(ctr.get("command", [])[: len(cmd)] == cmd and compose.get("command", [])[: len(cmd)] == cmd
+         and ctr.get("command") == compose.get("command"),
+         "k8s and compose run the image's CMD with the same arguments", f"{cmd} / {ctr.get('command')} / {compose.get('command')}")
+    # mounts
+    vols = set(cfg.get("Volumes") or {})
+    k8s_mounts = {m["mountPath"]: bool(m.get("readOnly")) for m in ctr.get("volumeMounts", [])}
+    comp = {t: ro for _, t, ro in bind_mounts(compose)}
+    for v in sorted(vols):
+        c.ok(k8s_mounts.get(v) is True, f"k8s mounts image volume {v} read-only")
+        c.ok(any(t == v or t.startswith(v + "/") for t in comp) and all(ro for t, ro in comp.items() if t.startswith(v)),
+             f"compose mounts image volume {v} (or files under it) read-only")
+    c.ok(sc.get("readOnlyRootFilesystem") is True and compose.get("read_only") is True,
+         "read-only root filesystem in k8s and compose (the test ran with --read-only)")
+    c.ok("/tmp" in k8s_mounts and "/tmp" in (compose.get("tmpfs") or []), "a writable /tmp in k8s (emptyDir) and compose (tmpfs)")
+    # grace period
+    k8s_grace = int(pod["terminationGracePeriodSeconds"])
+    comp_grace = duration_s(compose.get("stop_grace_period", "10s"))
+    c.ok(min(k8s_grace, comp_grace) > SERVER_MAX_DRAIN_S,
+         f"grace periods (k8s {k8s_grace} s, compose {comp_grace} s) exceed the server's longest drain ({SERVER_MAX_DRAIN_S} s)")
+    c.ok(drain_ms / 1000 < min(k8s_grace, comp_grace), f"measured drain {drain_ms / 1000:.2f} s is within both grace periods")
+    # resources from memory per connection: the documented figure (1000
+    # clients) sizes them; the container's own (a few dozen clients, whole
+    # RSS sampled each second) is printed beside it, too noisy to assert on.
+    kib = DOCUMENTED_KIB_PER_CONNECTION
+    max_conn = int(kcfg["max_connections"])
+    need = max_conn * kib / 1024
+    req = mebibytes(ctr["resources"]["requests"]["memory"])
+    lim = mebibytes(ctr["resources"]["limits"]["memory"])
+    c.ok(req >= need and lim >= 2 * need,
+         f"memory request {req:.0f} MiB >= max_connections {max_conn} x {kib} KiB (docs/BENCHMARKS.md, Load) = {need:.0f} MiB, "
+         f"limit {lim:.0f} MiB >= twice that")
+    c.note(f"memory per connection in the container test: {kib_per_conn:.1f} KiB (RSS, few clients: a cross-check only)")
+    return c.done()
+
+
 def main(argv: list[str]) -> int:
     if not argv:
         print(__doc__)
@@ -738,6 +918,15 @@ def main(argv: list[str]) -> int:
         return cmd_promql_rules(args[0])
     if cmd == "metrics":
         return cmd_metrics(args[0] if args else None)
+    if cmd == "probes":
+        for kind, path, port in probe_list():
+            print(kind, path, port)
+        return 0
+    if cmd == "grace":
+        print(grace_seconds())
+        return 0
+    if cmd == "agree" and len(args) == 3:
+        return cmd_agree(args[0], float(args[1]), float(args[2]))
     print(f"unknown subcommand {cmd}\n{__doc__}")
     return 2
 

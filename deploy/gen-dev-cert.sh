@@ -2,6 +2,7 @@
 # Writes a self-signed certificate and key for local runs of compose.yaml:
 #   deploy/tls/cert.pem, deploy/tls/key.pem  (CN/SAN: localhost, 127.0.0.1, ::1)
 # and, if missing, a random token for the tenant "public": deploy/tokens/public.
+#   deploy/gen-dev-cert.sh [TLS_DIR [TOKENS_DIR]]   (defaults: deploy/tls, deploy/tokens)
 # Clients must trust deploy/tls/cert.pem (or run in their insecure/dev mode).
 # Never use these in production.
 set -euo pipefail
@@ -16,7 +17,7 @@ openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes \
 chmod 0644 "$out/cert.pem"
 chmod 0644 "$out/key.pem"
 echo "wrote $out/cert.pem and $out/key.pem"
-tokens="$here/tokens"
+tokens="${2:-$here/tokens}"
 if [ ! -s "$tokens/public" ]; then
   mkdir -p "$tokens"
   openssl rand -hex 32 > "$tokens/public"

@@ -240,6 +240,9 @@ impl Server {
             metrics.init_database(&d.name, cur.len());
             dbs.insert(d.name.clone(), slot);
         }
+        for t in &config.tenants {
+            metrics.init_tenant(&t.name, &t.databases);
+        }
         let tenants = config
             .tenants
             .iter()

@@ -322,9 +322,26 @@ impl Metrics {
         self.database_reloads_total.with_label_values(&[db]);
         self.storage_errors_total.with_label_values(&[db]);
         self.corrupt_records_total.with_label_values(&[db]);
+        self.request_duration.with_label_values(&[db]);
+        self.record_size.with_label_values(&[db]);
         self.database_size_bytes
             .with_label_values(&[db])
             .set(i64::try_from(size).unwrap_or(i64::MAX));
+    }
+
+    /// Pre-creates a tenant's series (every request outcome, bytes sent) for
+    /// each database it may open, so they show up as 0: a counter first
+    /// exported at 1 hides that first event from `rate()` and `increase()`
+    /// (e.g. the first corrupt record from `PlanetDatabaseCorruptRecords`),
+    /// and the dashboard's ratios would show no data instead of 0.
+    pub fn init_tenant(&self, tenant: &str, databases: &[String]) {
+        for db in databases {
+            for outcome in RequestOutcome::ALL {
+                self.requests_total
+                    .with_label_values(&[tenant, db, outcome.as_str()]);
+            }
+            self.bytes_sent_total.with_label_values(&[tenant, db]);
+        }
     }
 
     /// Counts how one unauthenticated connection ended.

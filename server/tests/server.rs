@@ -448,6 +448,58 @@ async fn corrupt_record_is_refused_and_counted() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tenant_and_database_series_exist_at_zero_before_any_request() {
+    use planet_server::metrics::RequestOutcome;
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, _) = two_tenant_config(dir.path());
+    let h = Server::start(cfg).await.unwrap();
+    let text = scrape(&h).await;
+    let samples = |name: &str, labels: &[(&str, &str)]| -> Vec<String> {
+        text.lines()
+            .filter(|l| l.starts_with(&format!("{name}{{")))
+            .filter(|l| {
+                labels
+                    .iter()
+                    .all(|(k, v)| l.contains(&format!("{k}=\"{v}\"")))
+            })
+            .map(str::to_string)
+            .collect()
+    };
+    for (tenant, db) in [("acme", "earth"), ("other", "mars")] {
+        for o in RequestOutcome::ALL {
+            let got = samples(
+                "planet_requests_total",
+                &[
+                    ("tenant", tenant),
+                    ("database", db),
+                    ("outcome", o.as_str()),
+                ],
+            );
+            assert_eq!(got.len(), 1, "{tenant}/{db}/{}: {got:?}", o.as_str());
+            assert!(got[0].ends_with(" 0"), "{}", got[0]);
+        }
+        let got = samples(
+            "planet_bytes_sent_total",
+            &[("tenant", tenant), ("database", db)],
+        );
+        assert_eq!(got.len(), 1, "bytes sent {tenant}/{db}: {got:?}");
+        for hist in [
+            "planet_request_duration_seconds_count",
+            "planet_record_size_bytes_count",
+        ] {
+            assert_eq!(samples(hist, &[("database", db)]).len(), 1, "{hist} {db}");
+        }
+    }
+    // Only the databases a tenant may open.
+    assert!(samples(
+        "planet_requests_total",
+        &[("tenant", "acme"), ("database", "mars")]
+    )
+    .is_empty());
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn max_connections_refuses_extra() {
     let dir = tempfile::tempdir().unwrap();
     let (mut cfg, _) = two_tenant_config(dir.path());
