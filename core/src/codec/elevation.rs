@@ -47,7 +47,7 @@ pub const MAX_ERROR_LIMIT: u16 = 16_383;
 /// Context classes.
 const CONTEXTS: usize = 8;
 /// Values coded directly as their own bucket.
-const DIRECT: u32 = 16;
+pub(super) const DIRECT: u32 = 16;
 /// Buckets: 16 direct values, then bit lengths 5..=32.
 const BUCKETS: usize = DIRECT as usize + 28;
 
@@ -60,13 +60,13 @@ pub fn max_raw_len(w: usize) -> usize {
 
 /// Quantisation index of a stored value.
 #[inline]
-fn index(v: i16, k: i32, s: i32) -> i32 {
+pub(super) fn index(v: i16, k: i32, s: i32) -> i32 {
     (v as i32 + k).div_euclid(s)
 }
 
 /// The stored value of an index, clamped to `i16`.
 #[inline]
-fn value(q: i32, s: i32) -> i16 {
+pub(super) fn value(q: i32, s: i32) -> i16 {
     (q as i64 * s as i64).clamp(i16::MIN as i64, i16::MAX as i64) as i16
 }
 
@@ -140,7 +140,7 @@ fn for_each_new(
 
 /// Bucket of a zig-zagged residual and its extra bits `(count, value)`.
 #[inline]
-fn bucket(z: u32) -> (usize, u32, u32) {
+pub(super) fn bucket(z: u32) -> (usize, u32, u32) {
     if z < DIRECT {
         (z as usize, 0, 0)
     } else {
@@ -204,7 +204,7 @@ fn decoder_model(scale: u8) -> &'static SmallContiguousLookupDecoderModel {
 
 /// Uniform chunks of at most 8 bits of `count` extra bits, low chunk first.
 #[inline]
-fn chunks(count: u32) -> impl DoubleEndedIterator<Item = (u32, u32)> {
+pub(super) fn chunks(count: u32) -> impl DoubleEndedIterator<Item = (u32, u32)> {
     (0..count.div_ceil(8)).map(move |c| (8 * c, (count - 8 * c).min(8)))
 }
 
@@ -319,7 +319,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use proptest::prelude::*;
 
@@ -348,8 +348,15 @@ mod tests {
         }
     }
 
-    /// A grid of random values with extremes, cliffs and constant runs.
-    fn hostile_grid() -> impl Strategy<Value = Vec<i16>> {
+    /// A quantised codec's encoder and decoder (ids 1 and 2).
+    pub(in crate::codec) type Codec = (
+        fn(&[i16], usize, u16) -> Vec<u8>,
+        fn(&[u8], usize, u16, &mut [i16]) -> Result<(), CodecError>,
+        fn(usize) -> usize,
+    );
+
+    /// A 17² grid of random values with extremes, cliffs and constant runs.
+    pub(in crate::codec) fn hostile_grid() -> impl Strategy<Value = Vec<i16>> {
         proptest::collection::vec(
             prop_oneof![
                 any::<i16>(),
@@ -363,10 +370,16 @@ mod tests {
         )
     }
 
-    fn round_trip(samples: &[i16], k: u16) -> Vec<i16> {
+    /// Max errors to try: exact, 1, random and the largest.
+    pub(in crate::codec) fn max_errors() -> impl Strategy<Value = u16> {
+        prop_oneof![Just(0u16), Just(1), 0..2000u16, Just(MAX_ERROR_LIMIT)]
+    }
+
+    /// Encode a 17² grid and decode it from its LOD 1 as the parent
+    /// decoded it (the source quantised the same way).
+    pub(in crate::codec) fn round_trip(codec: Codec, samples: &[i16], k: u16) -> Vec<i16> {
         let w = 16;
         let side = w + 1;
-        // The parent's decoded LOD 1: the source quantised the same way.
         let s = 2 * k as i32 + 1;
         let mut grid = vec![0i16; side * side];
         for j in (0..side).step_by(2) {
@@ -375,22 +388,63 @@ mod tests {
                 grid[j * side + i] = value(index(v, k as i32, s), s);
             }
         }
-        let enc = encode(samples, w, k);
-        assert!(enc.len() <= max_raw_len(w));
-        decode(&enc, w, k, &mut grid).unwrap();
+        let enc = codec.0(samples, w, k);
+        assert!(enc.len() <= codec.2(w));
+        codec.1(&enc, w, k, &mut grid).unwrap();
         grid
     }
 
+    /// Every decoded sample is within `k` of the source; `k = 0` is exact.
+    pub(in crate::codec) fn check_bound(codec: Codec, samples: &[i16], k: u16) {
+        let dec = round_trip(codec, samples, k);
+        for (p, (a, b)) in dec.iter().zip(samples).enumerate() {
+            assert!(
+                (*a as i32 - *b as i32).abs() <= k as i32,
+                "sample {p} {a} vs {b} k {k}"
+            );
+        }
+        if k == 0 {
+            assert_eq!(dec, samples);
+        }
+    }
+
+    /// Constant blocks round-trip exactly, cliffs between the extremes
+    /// within the bound.
+    pub(in crate::codec) fn check_constant_and_cliff(codec: Codec) {
+        let side = 17;
+        let constant = vec![1234i16; side * side];
+        assert_eq!(round_trip(codec, &constant, 0), constant);
+        let cliff: Vec<i16> = (0..side * side)
+            .map(|p| if p % side < 8 { i16::MIN } else { i16::MAX })
+            .collect();
+        for k in [0, 1, 3, 100, MAX_ERROR_LIMIT] {
+            check_bound(codec, &cliff, k);
+        }
+    }
+
+    /// Truncated, padded and mis-sized inputs are errors.
+    pub(in crate::codec) fn check_truncated_and_padded(codec: Codec) {
+        let w = 16;
+        let samples: Vec<i16> = (0..17 * 17)
+            .map(|v| ((v * 37 % 1000) * 40 - 20000) as i16)
+            .collect();
+        let enc = codec.0(&samples, w, 0);
+        let mut grid = vec![0i16; 17 * 17];
+        for cut in [0, 1, enc.len() / 2, enc.len() - 1] {
+            assert!(codec.1(&enc[..cut], w, 0, &mut grid).is_err(), "cut {cut}");
+        }
+        let mut long = enc.clone();
+        long.extend_from_slice(&[0, 0, 0, 0]);
+        assert!(codec.1(&long, w, 0, &mut grid).is_err());
+        assert!(codec.1(&enc, w, 0, &mut [0i16; 4]).is_err());
+    }
+
+    const ID1: Codec = (encode, decode, max_raw_len);
+
     proptest! {
         #[test]
-        fn every_sample_within_the_bound(samples in hostile_grid(), k in prop_oneof![Just(0u16), Just(1), 0..2000u16, Just(MAX_ERROR_LIMIT)]) {
-            let dec = round_trip(&samples, k);
-            for (p, (a, b)) in dec.iter().zip(&samples).enumerate() {
-                prop_assert!((*a as i32 - *b as i32).abs() <= k as i32, "sample {} {} vs {} k {}", p, a, b, k);
-            }
-            if k == 0 {
-                prop_assert_eq!(dec, samples);
-            }
+        fn every_sample_within_the_bound(samples in hostile_grid(), k in max_errors()) {
+            check_bound(ID1, &samples, k);
         }
 
         #[test]
@@ -402,36 +456,11 @@ mod tests {
 
     #[test]
     fn constant_and_cliff_blocks() {
-        let w = 16;
-        let side = w + 1;
-        let constant = vec![1234i16; side * side];
-        assert_eq!(round_trip(&constant, 0), constant);
-        let cliff: Vec<i16> = (0..side * side)
-            .map(|p| if p % side < 8 { i16::MIN } else { i16::MAX })
-            .collect();
-        for k in [0, 1, 3, 100] {
-            let dec = round_trip(&cliff, k);
-            assert!(dec
-                .iter()
-                .zip(&cliff)
-                .all(|(a, b)| (*a as i32 - *b as i32).abs() <= k as i32));
-        }
+        check_constant_and_cliff(ID1);
     }
 
     #[test]
     fn truncated_and_padded_payloads_are_errors() {
-        let w = 16;
-        let samples: Vec<i16> = (0..17 * 17)
-            .map(|v| ((v * 37 % 1000) * 40 - 20000) as i16)
-            .collect();
-        let enc = encode(&samples, w, 0);
-        let mut grid = vec![0i16; 17 * 17];
-        for cut in [0, 1, enc.len() / 2, enc.len() - 1] {
-            assert!(decode(&enc[..cut], w, 0, &mut grid).is_err(), "cut {cut}");
-        }
-        let mut long = enc.clone();
-        long.extend_from_slice(&[0, 0, 0, 0]);
-        assert!(decode(&long, w, 0, &mut grid).is_err());
-        assert!(decode(&enc, w, 0, &mut [0i16; 4]).is_err());
+        check_truncated_and_padded(ID1);
     }
 }
