@@ -215,15 +215,39 @@ fn payload_sizes(path: &str, k: u16) {
         ElevationCodec::Quantised { max_error: k },
         ElevationCodec::Laplace { max_error: k },
     ] {
-        let bytes: usize = gs
+        let w = side - 1;
+        let start = cpu_ns();
+        let payloads: Vec<_> = gs.iter().map(|g| codec.encode(g, w)).collect();
+        let enc = n / ((cpu_ns() - start) as f64 * 1e-9);
+        let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
+        // Each grid's LOD 1 (the source: the quantisation is pointwise).
+        let firsts: Vec<Vec<i16>> = gs
             .iter()
-            .map(|g| codec.encode(g, side - 1).bytes.len())
-            .sum();
+            .map(|g| {
+                let mut f = vec![0i16; side * side];
+                lod::elevation_place_first_lod(&lod::elevation_first_lod(g, w), w, &mut f);
+                f
+            })
+            .collect();
+        let mut grid = vec![0i16; side * side];
+        let (start, mut runs) = (cpu_ns(), 0);
+        while cpu_ns() - start < 2_000_000_000 {
+            for (p, f) in payloads.iter().zip(&firsts) {
+                grid.copy_from_slice(f);
+                codec
+                    .decode(&p.bytes, p.raw_len as usize, w, &mut grid)
+                    .unwrap();
+            }
+            runs += 1;
+        }
+        let dec = runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9);
         println!(
-            "{} k {k}: {:.4} B per new sample ({} grids)",
+            "{} k {k}: {:.4} B per new sample ({} grids), encode {:.1} M, decode {:.1} M samples per CPU-second",
             codec.name(),
             bytes as f64 / n,
-            gs.len()
+            gs.len(),
+            enc / 1e6,
+            dec / 1e6
         );
     }
 }

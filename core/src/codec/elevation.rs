@@ -23,7 +23,8 @@
 //! neighbours' difference, 8 classes): per record and context one byte, the
 //! scale `σ = round(8·log2(1 + mean z))`, selects a geometric distribution
 //! of mean `2^(σ/8) − 1` over `z`, summed into buckets and quantised to 12
-//! bits (a lookup decoder model; all 256 are built once per process).
+//! bits (a compact table decoder model, [`super::model`]; all 256 are built
+//! once per process, when first used).
 //! Measured on the real data's residuals (docs/BENCHMARKS.md "Bytes per
 //! sample"), this is 8–12 % under zstd -9 of the same residual bytes and
 //! within 2 % of their context-conditioned empirical entropy.
@@ -32,11 +33,10 @@
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them: decode
 //! pops from the end). There is no further entropy layer.
 
+use super::model::CompactDecoder;
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
-use constriction::stream::model::{
-    SmallContiguousCategoricalEntropyModel, SmallContiguousLookupDecoderModel, SmallUniformModel,
-};
+use constriction::stream::model::{SmallContiguousCategoricalEntropyModel, SmallUniformModel};
 use constriction::stream::stack::DefaultAnsCoder;
 use constriction::stream::{Decode, Encode};
 use std::sync::OnceLock;
@@ -56,6 +56,50 @@ const BUCKETS: usize = DIRECT as usize + 28;
 /// four uniform chunks), plus the coder's final state.
 pub fn max_raw_len(w: usize) -> usize {
     CONTEXTS + 4 * (6 * elevation_new_samples(w) + 2)
+}
+
+/// The quantisation of max error `k`: step `s = 2k + 1`, with the division
+/// by `s` as a multiplication (exact for every `i16`, see [`Self::index`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Quantiser {
+    k: i32,
+    s: i32,
+    /// A multiple of `s` at least 32 768, so that `v + k + offset ≥ 0`.
+    offset: i32,
+    /// `⌊2⁴⁰/s⌋ + 1`.
+    inverse: u64,
+}
+
+impl Quantiser {
+    pub(super) fn new(k: u16) -> Quantiser {
+        let (k, s) = (k as i32, 2 * k as i32 + 1);
+        Quantiser {
+            k,
+            s,
+            offset: s * ((32_768 + s - 1) / s),
+            inverse: (1u64 << 40) / s as u64 + 1,
+        }
+    }
+
+    /// `⌊(v + k)/s⌋`: with `n = v + k + offset < 2¹⁷`, `n·inverse/2⁴⁰`
+    /// exceeds `n/s` by less than `2¹⁷/2⁴⁰`, less than the `1/s ≥ 2⁻¹⁵` by
+    /// which a non-integer `n/s` falls short of the next integer.
+    #[inline(always)]
+    pub(super) fn index(&self, v: i16) -> i32 {
+        let n = (v as i32 + self.k + self.offset) as u64;
+        ((n * self.inverse) >> 40) as i32 - self.offset / self.s
+    }
+
+    /// The stored value of an index, clamped to `i16`.
+    #[inline(always)]
+    pub(super) fn value(&self, q: i32) -> i16 {
+        value(q, self.s)
+    }
+
+    /// The indices of `i16::MIN` and `i16::MAX`.
+    pub(super) fn range(&self) -> (i32, i32) {
+        (self.index(i16::MIN), self.index(i16::MAX))
+    }
 }
 
 /// Quantisation index of a stored value.
@@ -190,16 +234,11 @@ fn encoder_model(scale: u8) -> &'static SmallContiguousCategoricalEntropyModel {
     })
 }
 
-/// The lookup decoder model of scale `σ` (8 kB), built on first use.
-fn decoder_model(scale: u8) -> &'static SmallContiguousLookupDecoderModel {
-    static MODELS: [OnceLock<SmallContiguousLookupDecoderModel>; 256] =
-        [const { OnceLock::new() }; 256];
-    MODELS[scale as usize].get_or_init(|| {
-        SmallContiguousLookupDecoderModel::from_floating_point_probabilities_perfect(
-            &bucket_probabilities(scale),
-        )
-        .unwrap_or_else(|_| unreachable!("finite positive probabilities"))
-    })
+/// The decoder model of scale `σ` (330 bytes), built on first use from the
+/// encoder's.
+fn decoder_model(scale: u8) -> &'static CompactDecoder<BUCKETS> {
+    static MODELS: [OnceLock<CompactDecoder<BUCKETS>>; 256] = [const { OnceLock::new() }; 256];
+    MODELS[scale as usize].get_or_init(|| CompactDecoder::new(encoder_model(scale)))
 }
 
 /// Uniform chunks of at most 8 bits of `count` extra bits, low chunk first.
@@ -293,7 +332,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
         std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
     let mut next = |c: usize| -> Result<u32, CodecError> {
         let rans = |e| CodecError::Rans(format!("{e:?}"));
-        let b = coder.decode_symbol(m[c].as_view()).map_err(rans)?;
+        let b = coder.decode_symbol(m[c]).map_err(rans)?;
         if b < DIRECT as usize {
             return Ok(b as u32);
         }
@@ -457,6 +496,23 @@ pub(super) mod tests {
     #[test]
     fn constant_and_cliff_blocks() {
         check_constant_and_cliff(ID1);
+    }
+
+    /// The multiplicative division equals floor division for every `i16`
+    /// and a spread of max errors, the largest included.
+    #[test]
+    fn quantiser_divides_exactly() {
+        for k in [0u16, 1, 2, 3, 7, 100, 1000, 4097, 16_382, MAX_ERROR_LIMIT] {
+            let quant = Quantiser::new(k);
+            let s = 2 * k as i32 + 1;
+            for v in i16::MIN..=i16::MAX {
+                assert_eq!(quant.index(v), index(v, k as i32, s), "v {v} k {k}");
+            }
+            assert_eq!(
+                quant.range(),
+                (index(i16::MIN, k as i32, s), index(i16::MAX, k as i32, s))
+            );
+        }
     }
 
     #[test]

@@ -33,12 +33,12 @@
 //! Raw layout: 12 scale bytes (contexts 0–11), then the rANS words (`u32`
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them).
 
-use super::elevation::{bucket, chunks, index, value, DIRECT};
+use super::elevation::{bucket, chunks, Quantiser, DIRECT};
+use super::model::CompactDecoder;
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
 use constriction::stream::model::{
-    EncoderModel, SmallContiguousCategoricalEntropyModel, SmallContiguousLookupDecoderModel,
-    SmallUniformModel,
+    EncoderModel, SmallContiguousCategoricalEntropyModel, SmallUniformModel,
 };
 use constriction::stream::stack::DefaultAnsCoder;
 use constriction::stream::{Decode, Encode};
@@ -125,16 +125,13 @@ fn encoder_model(scale: u8, centre: usize) -> &'static CostedModel {
     })
 }
 
-/// The lookup decoder model of `(σ, centre)` (8 kB), built on first use.
-fn decoder_model(scale: u8, centre: usize) -> &'static SmallContiguousLookupDecoderModel {
-    static MODELS: [[OnceLock<SmallContiguousLookupDecoderModel>; CENTRES]; 256] =
+/// The decoder model of `(σ, centre)` (330 bytes), built on first use from
+/// the encoder's.
+fn decoder_model(scale: u8, centre: usize) -> &'static CompactDecoder<SYMBOLS> {
+    static MODELS: [[OnceLock<CompactDecoder<SYMBOLS>>; CENTRES]; 256] =
         [const { [const { OnceLock::new() }; CENTRES] }; 256];
-    MODELS[scale as usize][centre].get_or_init(|| {
-        SmallContiguousLookupDecoderModel::from_floating_point_probabilities_perfect(
-            &probabilities(scale, centre),
-        )
-        .unwrap_or_else(|_| unreachable!("finite positive probabilities"))
-    })
+    MODELS[scale as usize][centre]
+        .get_or_init(|| CompactDecoder::new(&encoder_model(scale, centre).0))
 }
 
 /// What the coder needs of one new sample's prediction.
@@ -176,163 +173,157 @@ fn cubic(a: i32, b: i32, c: i32, d: i32) -> i32 {
     9 * (b + c) - a - d
 }
 
-/// Walk the new samples of a `(w+1)²` index grid in coding order (pass 1,
-/// edge midpoints row-major; pass 2, cell centres row-major), with every
-/// sample's prediction made from the indices before it. `code` gets the
-/// position, the prediction and the grid's index there (the source's when
-/// encoding) and returns the zig-zagged residual `z`; the walker stores the
-/// index `p₀ ± unzigzag(z)` in `q` (an error if outside `lo..=hi`), `z` in
-/// `zs` (the neighbours' residuals of the contexts) and the error of the
-/// fixed-point prediction in `es` (which corrects the cell centres').
-fn walk<E: From<CodecError>>(
-    q: &mut [i32],
-    zs: &mut [u32],
-    es: &mut [i32],
+/// The grids the walker fills: indices `q`, zig-zagged residuals `zs` (the
+/// neighbours' residuals of the contexts) and the errors of the fixed-point
+/// predictions `es` (which correct the cell centres').
+struct Grids<'a> {
+    q: &'a mut [i32],
+    zs: &'a mut [u32],
+    es: &'a mut [i32],
     side: usize,
-    (lo, hi): (i32, i32),
-    mut code: impl FnMut(usize, Pred, i32) -> Result<u32, E>,
-) -> Result<(), E> {
-    let w = side - 1;
-    let mut put = |q: &mut [i32],
-                   zs: &mut [u32],
-                   es: &mut [i32],
-                   at: usize,
-                   p32: i32,
-                   p: Pred|
-     -> Result<(), E> {
-        let z = code(at, p, q[at])?;
+    /// The index range.
+    range: (i32, i32),
+}
+
+impl Grids<'_> {
+    /// Code one sample: `p32` is its fixed-point prediction, `act` its
+    /// activity. The index `p₀ ± unzigzag(z)` must be in the range.
+    #[inline(always)]
+    fn put(
+        &mut self,
+        code: &mut impl Sampler,
+        at: usize,
+        p32: i32,
+        act: u32,
+    ) -> Result<(), CodecError> {
+        let (lo, hi) = self.range;
+        let p = pred(p32, act, lo, hi);
+        let z = code.sample(p, self.q[at])?;
         let r = -unzigzag32(z);
         let v = p.p0 as i64 + if p.flip { -(r as i64) } else { r as i64 };
         if v < lo as i64 || v > hi as i64 {
-            return Err(
-                CodecError::Rans(format!("sample {at} decodes outside the index range")).into(),
-            );
+            return Err(CodecError::Rans(format!(
+                "sample {at} decodes outside the index range"
+            )));
         }
-        q[at] = v as i32;
-        zs[at] = z;
-        es[at] = ((v as i32) << FRAC_BITS) - p32;
+        self.q[at] = v as i32;
+        self.zs[at] = z;
+        self.es[at] = ((v as i32) << FRAC_BITS) - p32;
         Ok(())
-    };
-    // Pass 1.
-    for j in 0..side {
-        let row = j * side;
-        if j % 2 == 0 {
-            // Midpoints along i between LOD 1 samples.
-            for i in (1..side).step_by(2) {
-                let at = row + i;
-                let (b, c) = (q[at - 1], q[at + 1]);
-                let slope = b.abs_diff(c);
-                let (p32, act) = if i >= 3 && i + 3 <= w {
-                    let (a, d) = (q[at - 3], q[at + 3]);
-                    (
-                        2 * cubic(a, b, c, d),
-                        ((4 * (a - b - c + d).unsigned_abs() + slope) >> 3),
-                    )
-                } else {
-                    (16 * (b + c), (3 * slope) >> 3)
-                };
-                let near = if i >= 3 { zs[at - 2] } else { 0 }
-                    + if j >= 2 { zs[at - 2 * side] } else { 0 };
-                put(
-                    q,
-                    zs,
-                    es,
-                    at,
-                    p32,
-                    pred(p32, act.saturating_add(near), lo, hi),
-                )?;
-            }
+    }
+
+    /// An edge midpoint `(i, j)`.
+    #[inline(always)]
+    fn midpoint(
+        &mut self,
+        code: &mut impl Sampler,
+        (i, j): (usize, usize),
+    ) -> Result<(), CodecError> {
+        let (side, w) = (self.side, self.side - 1);
+        let (q, zs) = (&*self.q, &*self.zs);
+        let at = j * side + i;
+        // Along i between LOD 1 samples on even rows, along j on odd rows.
+        let (step, t) = if j.is_multiple_of(2) {
+            (1, i)
         } else {
-            // Midpoints along j.
-            let inner = j >= 3 && j + 3 <= w;
-            for i in (0..side).step_by(2) {
-                let at = row + i;
-                let (b, c) = (q[at - side], q[at + side]);
-                let slope = b.abs_diff(c);
-                let (p32, act) = if inner {
-                    let (a, d) = (q[at - 3 * side], q[at + 3 * side]);
-                    (
-                        2 * cubic(a, b, c, d),
-                        ((4 * (a - b - c + d).unsigned_abs() + slope) >> 3),
-                    )
-                } else {
-                    (16 * (b + c), (3 * slope) >> 3)
-                };
-                let near = if i >= 2 { zs[at - 2] } else { 0 }
-                    + if j >= 3 { zs[at - 2 * side] } else { 0 };
-                put(
-                    q,
-                    zs,
-                    es,
-                    at,
-                    p32,
-                    pred(p32, act.saturating_add(near), lo, hi),
-                )?;
-            }
+            (side, j)
+        };
+        let (b, c) = (q[at - step], q[at + step]);
+        let slope = b.abs_diff(c);
+        let (p32, act) = if t >= 3 && t + 3 <= w {
+            let (a, d) = (q[at - 3 * step], q[at + 3 * step]);
+            (
+                2 * cubic(a, b, c, d),
+                (4 * (a - b - c + d).unsigned_abs() + slope) >> 3,
+            )
+        } else {
+            (16 * (b + c), (3 * slope) >> 3)
+        };
+        // The residuals of the same kind of midpoint before it on its row
+        // and two rows up.
+        let near = if i >= 2 { zs[at - 2] } else { 0 } + if j >= 2 { zs[at - 2 * side] } else { 0 };
+        self.put(code, at, p32, act.saturating_add(near))
+    }
+
+    /// A cell centre `(i, j)`.
+    #[inline(always)]
+    fn centre(
+        &mut self,
+        code: &mut impl Sampler,
+        (i, j): (usize, usize),
+    ) -> Result<(), CodecError> {
+        let (side, w) = (self.side, self.side - 1);
+        let (q, zs, es) = (&*self.q, &*self.zs, &*self.es);
+        let at = j * side + i;
+        let (l, r, u, d) = (q[at - 1], q[at + 1], q[at - side], q[at + side]);
+        let slope = l.abs_diff(r).max(u.abs_diff(d));
+        let (p32, act) = if i >= 3 && i + 3 <= w && j >= 3 && j + 3 <= w {
+            let cx = cubic(q[at - 3], l, r, q[at + 3]);
+            let cy = cubic(q[at - 3 * side], u, d, q[at + 3 * side]);
+            (cx + cy, (cx.abs_diff(cy) >> 5) + (slope >> 3))
+        } else {
+            (8 * (l + r + u + d), slope)
+        };
+        let near = (zs[at - 1] + zs[at + 1] + zs[at - side] + zs[at + side]) >> 1;
+        // Half the mean error of the four midpoints' own predictions.
+        let p32 = p32 + ((es[at - 1] + es[at + 1] + es[at - side] + es[at + side]) >> 3);
+        self.put(code, at, p32, act.saturating_add(near))
+    }
+}
+
+/// The new columns of row `j`: odd on even rows, even on odd rows.
+fn columns(side: usize, j: usize) -> std::iter::StepBy<std::ops::Range<usize>> {
+    (j.is_multiple_of(2) as usize..side).step_by(2)
+}
+
+/// Walk the new samples of a `(w+1)²` index grid in coding order (pass 1,
+/// edge midpoints row-major; pass 2, cell centres row-major), each
+/// predicted from the indices before it. `code` gets the prediction and
+/// the grid's index there (the source's when encoding) and returns the
+/// zig-zagged residual.
+fn walk(code: &mut impl Sampler, g: &mut Grids) -> Result<(), CodecError> {
+    let side = g.side;
+    for j in 0..side {
+        for i in columns(side, j) {
+            g.midpoint(code, (i, j))?;
         }
     }
-    // Pass 2.
     for j in (1..side).step_by(2) {
-        let row = j * side;
         for i in (1..side).step_by(2) {
-            let at = row + i;
-            let (l, r, u, d) = (q[at - 1], q[at + 1], q[at - side], q[at + side]);
-            let slope = l.abs_diff(r).max(u.abs_diff(d));
-            let (p32, act) = if i >= 3 && i + 3 <= w && j >= 3 && j + 3 <= w {
-                let cx = cubic(q[at - 3], l, r, q[at + 3]);
-                let cy = cubic(q[at - 3 * side], u, d, q[at + 3 * side]);
-                (cx + cy, (cx.abs_diff(cy) >> 5) + (slope >> 3))
-            } else {
-                (8 * (l + r + u + d), slope)
-            };
-            let near = (zs[at - 1] + zs[at + 1] + zs[at - side] + zs[at + side]) >> 1;
-            // Half the mean error of the four midpoints' own predictions.
-            let p32 = p32 + ((es[at - 1] + es[at + 1] + es[at - side] + es[at + side]) >> 3);
-            put(
-                q,
-                zs,
-                es,
-                at,
-                p32,
-                pred(p32, act.saturating_add(near), lo, hi),
-            )?;
+            g.centre(code, (i, j))?;
         }
     }
     Ok(())
 }
 
-/// The index range of step `s` and max error `k`.
-fn index_range(k: i32, s: i32) -> (i32, i32) {
-    (index(i16::MIN, k, s), index(i16::MAX, k, s))
+/// What the walker asks of a coder for each new sample: its zig-zagged
+/// residual, from the source's index `v` (encoder) or the payload
+/// (decoder).
+trait Sampler {
+    fn sample(&mut self, p: Pred, v: i32) -> Result<u32, CodecError>;
 }
 
-/// Encode the LOD 0 samples of a full `(w+1)²` grid of source values with
-/// max error `k`: the record payload.
-pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
-    let side = w + 1;
-    let (k, s) = (k as i32, 2 * k as i32 + 1);
-    let mut q: Vec<i32> = grid.iter().map(|&v| index(v, k, s)).collect();
-    let (mut zs, mut es) = (vec![0u32; side * side], vec![0i32; side * side]);
-    let n = elevation_new_samples(w);
-    let mut syms: Vec<(u32, u8)> = Vec::with_capacity(n);
-    let mut hist = [[[0u32; SYMBOLS]; CENTRES]; CONTEXTS];
-    let walked = walk::<CodecError>(
-        &mut q,
-        &mut zs,
-        &mut es,
-        side,
-        index_range(k, s),
-        |_, p, v| {
-            let r = v - p.p0;
-            let z = zigzag32(if p.flip { r } else { -r });
-            hist[p.model / CENTRES][p.model % CENTRES][bucket(z).0] += 1;
-            syms.push((z, p.model as u8));
-            Ok(z)
-        },
-    );
-    // Source indices are in range and every residual is exact.
-    walked.unwrap_or_else(|e| unreachable!("encoding in-range indices: {e}"));
-    let scales: [u8; CONTEXTS] = std::array::from_fn(|c| best_scale(&hist[c]));
+/// The encoder's first pass: the residuals with their models, and the
+/// symbol counts.
+struct Residuals {
+    syms: Vec<(u32, u8)>,
+    hist: [[[u32; SYMBOLS]; CENTRES]; CONTEXTS],
+}
+
+impl Sampler for Residuals {
+    #[inline(always)]
+    fn sample(&mut self, p: Pred, v: i32) -> Result<u32, CodecError> {
+        let r = v - p.p0;
+        let z = zigzag32(if p.flip { r } else { -r });
+        self.hist[p.model / CENTRES][p.model % CENTRES][bucket(z).0] += 1;
+        self.syms.push((z, p.model as u8));
+        Ok(z)
+    }
+}
+
+/// rANS words of the symbols (written in reverse so that the decoder reads
+/// them in coding order).
+fn rans_words(syms: &[(u32, u8)], scales: &[u8; CONTEXTS]) -> Vec<u32> {
     let uniform: [SmallUniformModel; 9] =
         std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
     let mut coder = DefaultAnsCoder::new();
@@ -350,9 +341,34 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
             .encode_symbol(b, &encoder_model(scales[c], centre).0)
             .unwrap_or_else(fail);
     }
-    let words = coder
+    coder
         .into_compressed()
-        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"));
+        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"))
+}
+
+/// Encode the LOD 0 samples of a full `(w+1)²` grid of source values with
+/// max error `k`: the record payload.
+pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
+    let side = w + 1;
+    let quant = Quantiser::new(k);
+    let mut q: Vec<i32> = grid.iter().map(|&v| quant.index(v)).collect();
+    let (mut zs, mut es) = (vec![0u32; side * side], vec![0i32; side * side]);
+    let n = elevation_new_samples(w);
+    let mut res = Residuals {
+        syms: Vec::with_capacity(n),
+        hist: [[[0u32; SYMBOLS]; CENTRES]; CONTEXTS],
+    };
+    let mut g = Grids {
+        q: &mut q,
+        zs: &mut zs,
+        es: &mut es,
+        side,
+        range: quant.range(),
+    };
+    // Source indices are in range and every residual is exact.
+    walk(&mut res, &mut g).unwrap_or_else(|e| unreachable!("encoding in-range indices: {e}"));
+    let scales: [u8; CONTEXTS] = std::array::from_fn(|c| best_scale(&res.hist[c]));
+    let words = rans_words(&res.syms, &scales);
     let mut out = Vec::with_capacity(CONTEXTS + 4 * words.len());
     out.extend_from_slice(&scales);
     for w in words {
@@ -408,6 +424,44 @@ fn best_scale(hist: &[[u32; SYMBOLS]; CENTRES]) -> u8 {
     best as u8
 }
 
+/// The decoder: the rANS stack and the record's models.
+struct Decoder {
+    coder: DefaultAnsCoder,
+    models: [&'static CompactDecoder<SYMBOLS>; CONTEXTS * CENTRES],
+    uniform: [SmallUniformModel; 9],
+}
+
+impl Sampler for Decoder {
+    #[inline(always)]
+    fn sample(&mut self, p: Pred, _: i32) -> Result<u32, CodecError> {
+        let rans = |e| CodecError::Rans(format!("{e:?}"));
+        let coder = &mut self.coder;
+        let b = coder.decode_symbol(self.models[p.model]).map_err(rans)?;
+        if b < DIRECT as usize {
+            return Ok(b as u32);
+        }
+        let extra = (b - DIRECT as usize + 4) as u32;
+        let mut bits = 0u32;
+        for (shift, width) in chunks(extra) {
+            let v = coder
+                .decode_symbol(self.uniform[width as usize])
+                .map_err(rans)?;
+            bits |= (v as u32) << shift;
+        }
+        Ok((1u32 << extra) | bits)
+    }
+}
+
+/// The rANS stack of little-endian words.
+fn stack(bytes: &[u8]) -> Result<DefaultAnsCoder, CodecError> {
+    let words: Vec<u32> = bytes
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    DefaultAnsCoder::from_compressed(words)
+        .map_err(|_| CodecError::Rans("compressed data ends in a zero word".into()))
+}
+
 /// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
 /// decoded samples; every new sample ends within `k` of its source value.
 pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
@@ -425,57 +479,35 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
         });
     }
     let (scales, body) = raw.split_at(CONTEXTS);
-    let words: Vec<u32> = body
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect();
-    let mut coder = DefaultAnsCoder::from_compressed(words)
-        .map_err(|_| CodecError::Rans("compressed data ends in a zero word".into()))?;
-    let models: [&SmallContiguousLookupDecoderModel; CONTEXTS * CENTRES] =
-        std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES));
-    let (k, s) = (k as i32, 2 * k as i32 + 1);
+    let mut dec = Decoder {
+        coder: stack(body)?,
+        models: std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES)),
+        uniform: std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1))),
+    };
+    let quant = Quantiser::new(k);
     let mut q = vec![0i32; side * side];
     for j in (0..side).step_by(2) {
         for i in (0..side).step_by(2) {
-            q[j * side + i] = index(grid[j * side + i], k, s);
+            q[j * side + i] = quant.index(grid[j * side + i]);
         }
     }
     let (mut zs, mut es) = (vec![0u32; side * side], vec![0i32; side * side]);
-    let uniform: [SmallUniformModel; 9] =
-        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
-    let rans = |e| CodecError::Rans(format!("{e:?}"));
-    walk(
-        &mut q,
-        &mut zs,
-        &mut es,
+    let mut g = Grids {
+        q: &mut q,
+        zs: &mut zs,
+        es: &mut es,
         side,
-        index_range(k, s),
-        |_, p, _| {
-            let b = coder
-                .decode_symbol(models[p.model].as_view())
-                .map_err(rans)?;
-            let z = if b < DIRECT as usize {
-                b as u32
-            } else {
-                let extra = (b - DIRECT as usize + 4) as u32;
-                let mut bits = 0u32;
-                for (shift, width) in chunks(extra) {
-                    let v = coder.decode_symbol(uniform[width as usize]).map_err(rans)?;
-                    bits |= (v as u32) << shift;
-                }
-                (1u32 << extra) | bits
-            };
-            Ok(z)
-        },
-    )?;
-    if !coder.is_empty() {
+        range: quant.range(),
+    };
+    walk(&mut dec, &mut g)?;
+    if !dec.coder.is_empty() {
         return Err(CodecError::Rans("words left after the last sample".into()));
     }
     for j in 0..side {
         // Even rows: the odd columns are new; odd rows: every column.
-        let (first, step) = if j % 2 == 0 { (1, 2) } else { (0, 1) };
+        let (first, step) = if j.is_multiple_of(2) { (1, 2) } else { (0, 1) };
         for at in (j * side + first..(j + 1) * side).step_by(step) {
-            grid[at] = value(q[at], s);
+            grid[at] = quant.value(q[at]);
         }
     }
     Ok(())

@@ -28,6 +28,7 @@ pub mod colour;
 pub mod elevation;
 pub mod elevation2;
 pub mod legacy;
+mod model;
 
 pub use legacy::{compress, decompress};
 
