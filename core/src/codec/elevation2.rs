@@ -326,6 +326,8 @@ impl Sampler for Residuals {
 fn rans_words(syms: &[(u32, u8)], scales: &[u8; CONTEXTS]) -> Vec<u32> {
     let uniform: [SmallUniformModel; 9] =
         std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
+    let models: [&CostedModel; CONTEXTS * CENTRES] =
+        std::array::from_fn(|m| encoder_model(scales[m / CENTRES], m % CENTRES));
     let mut coder = DefaultAnsCoder::new();
     let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
     for &(z, m) in syms.iter().rev() {
@@ -336,9 +338,8 @@ fn rans_words(syms: &[(u32, u8)], scales: &[u8; CONTEXTS]) -> Vec<u32> {
                 .encode_symbol(v as usize, uniform[width as usize])
                 .unwrap_or_else(fail);
         }
-        let (c, centre) = (m as usize / CENTRES, m as usize % CENTRES);
         coder
-            .encode_symbol(b, &encoder_model(scales[c], centre).0)
+            .encode_symbol(b, &models[m as usize].0)
             .unwrap_or_else(fail);
     }
     coder
