@@ -270,23 +270,7 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
         (8.0 * (1.0 + mean).log2()).round().clamp(0.0, 255.0) as u8
     });
     let m: [_; CONTEXTS] = std::array::from_fn(|c| encoder_model(scales[c]));
-    let uniform: [SmallUniformModel; 9] =
-        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
-    let mut coder = DefaultAnsCoder::new();
-    let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
-    for &(z, c) in syms.iter().rev() {
-        let (b, extra, bits) = bucket(z);
-        for (shift, width) in chunks(extra).rev() {
-            let v = (bits >> shift) & ((1 << width) - 1);
-            coder
-                .encode_symbol(v as usize, uniform[width as usize])
-                .unwrap_or_else(fail);
-        }
-        coder.encode_symbol(b, m[c as usize]).unwrap_or_else(fail);
-    }
-    let words = coder
-        .into_compressed()
-        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"));
+    let words = rans_encode(&syms, |c| m[c as usize]);
     let mut out = Vec::with_capacity(CONTEXTS + 4 * words.len());
     out.extend_from_slice(&scales);
     for w in words {
@@ -295,29 +279,67 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
     out
 }
 
-/// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
-/// decoded samples; every new sample ends within `k` of its source value.
-pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
-    let side = w + 1;
+/// rANS words of bucketed residuals `(z, model)` in coding order (written
+/// in reverse so that the decoder reads them in coding order), each bucket
+/// with the model `model` gives, the low bits uniform (ids 1 and 2).
+pub(super) fn rans_encode(
+    syms: &[(u32, u8)],
+    model: impl Fn(u8) -> &'static SmallContiguousCategoricalEntropyModel,
+) -> Vec<u32> {
+    let uniform: [SmallUniformModel; 9] =
+        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
+    let mut coder = DefaultAnsCoder::new();
+    let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
+    for &(z, m) in syms.iter().rev() {
+        let (b, extra, bits) = bucket(z);
+        for (shift, width) in chunks(extra).rev() {
+            let v = (bits >> shift) & ((1 << width) - 1);
+            coder
+                .encode_symbol(v as usize, uniform[width as usize])
+                .unwrap_or_else(fail);
+        }
+        coder.encode_symbol(b, model(m)).unwrap_or_else(fail);
+    }
+    coder
+        .into_compressed()
+        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"))
+}
+
+/// The checks and parts of a quantised payload (ids 1 and 2) for a grid of
+/// `side²` samples: `heads` scale bytes, then the rANS words.
+pub(super) fn open<'a>(
+    raw: &'a [u8],
+    heads: usize,
+    side: usize,
+    grid: &[i16],
+) -> Result<(&'a [u8], DefaultAnsCoder), CodecError> {
     if grid.len() != side * side {
         return Err(CodecError::Grid {
             got: grid.len(),
             expected: side * side,
         });
     }
-    if raw.len() < CONTEXTS || !(raw.len() - CONTEXTS).is_multiple_of(4) {
+    if raw.len() < heads || !(raw.len() - heads).is_multiple_of(4) {
         return Err(CodecError::Length {
             got: raw.len(),
-            expected: CONTEXTS,
+            expected: heads,
         });
     }
-    let (scales, body) = raw.split_at(CONTEXTS);
+    let (scales, body) = raw.split_at(heads);
     let words: Vec<u32> = body
         .chunks_exact(4)
         .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
-    let mut coder = DefaultAnsCoder::from_compressed(words)
+    let coder = DefaultAnsCoder::from_compressed(words)
         .map_err(|_| CodecError::Rans("compressed data ends in a zero word".into()))?;
+    Ok((scales, coder))
+}
+
+/// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
+/// decoded samples; every new sample ends within `k` of its source value.
+pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
+    let side = w + 1;
+    let (scales, mut coder) = open(raw, CONTEXTS, side, grid)?;
     let m: [_; CONTEXTS] = std::array::from_fn(|c| decoder_model(scales[c]));
     let (k, s) = (k as i32, 2 * k as i32 + 1);
     let (lo, hi) = (index(i16::MIN, k, s), index(i16::MAX, k, s));
@@ -387,7 +409,8 @@ pub(super) mod tests {
         }
     }
 
-    /// A quantised codec's encoder and decoder (ids 1 and 2).
+    /// A quantised codec's encoder, decoder and payload limit (ids 1 and
+    /// 2; the tests below run on both).
     pub(in crate::codec) type Codec = (
         fn(&[i16], usize, u16) -> Vec<u8>,
         fn(&[u8], usize, u16, &mut [i16]) -> Result<(), CodecError>,
@@ -478,24 +501,45 @@ pub(super) mod tests {
         assert!(codec.1(&enc, w, 0, &mut [0i16; 4]).is_err());
     }
 
-    const ID1: Codec = (encode, decode, max_raw_len);
+    /// Ids 1 and 2.
+    const CODECS: [Codec; 2] = [
+        (encode, decode, max_raw_len),
+        (
+            super::super::elevation2::encode,
+            super::super::elevation2::decode,
+            super::super::elevation2::max_raw_len,
+        ),
+    ];
 
     proptest! {
         #[test]
         fn every_sample_within_the_bound(samples in hostile_grid(), k in max_errors()) {
-            check_bound(ID1, &samples, k);
+            for codec in CODECS {
+                check_bound(codec, &samples, k);
+            }
         }
 
         #[test]
         fn hostile_payloads_are_typed_errors(raw in proptest::collection::vec(any::<u8>(), 0..1500), k in 0..5u16) {
-            let mut grid = vec![7i16; 17 * 17];
-            let _ = decode(&raw, 16, k, &mut grid);
+            for codec in CODECS {
+                let mut grid = vec![7i16; 17 * 17];
+                let _ = codec.1(&raw, 16, k, &mut grid);
+            }
         }
     }
 
     #[test]
     fn constant_and_cliff_blocks() {
-        check_constant_and_cliff(ID1);
+        for codec in CODECS {
+            check_constant_and_cliff(codec);
+        }
+    }
+
+    #[test]
+    fn truncated_and_padded_payloads_are_errors() {
+        for codec in CODECS {
+            check_truncated_and_padded(codec);
+        }
     }
 
     /// The multiplicative division equals floor division for every `i16`
@@ -513,10 +557,5 @@ pub(super) mod tests {
                 (index(i16::MIN, k as i32, s), index(i16::MAX, k as i32, s))
             );
         }
-    }
-
-    #[test]
-    fn truncated_and_padded_payloads_are_errors() {
-        check_truncated_and_padded(ID1);
     }
 }

@@ -33,7 +33,7 @@
 //! Raw layout: 12 scale bytes (contexts 0–11), then the rANS words (`u32`
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them).
 
-use super::elevation::{bucket, chunks, Quantiser, DIRECT};
+use super::elevation::{bucket, chunks, open, rans_encode, Quantiser, DIRECT};
 use super::model::CompactDecoder;
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
@@ -41,7 +41,7 @@ use constriction::stream::model::{
     EncoderModel, SmallContiguousCategoricalEntropyModel, SmallUniformModel,
 };
 use constriction::stream::stack::DefaultAnsCoder;
-use constriction::stream::{Decode, Encode};
+use constriction::stream::Decode;
 use std::sync::OnceLock;
 
 /// Context classes.
@@ -321,32 +321,6 @@ impl Sampler for Residuals {
     }
 }
 
-/// rANS words of the symbols (written in reverse so that the decoder reads
-/// them in coding order).
-fn rans_words(syms: &[(u32, u8)], scales: &[u8; CONTEXTS]) -> Vec<u32> {
-    let uniform: [SmallUniformModel; 9] =
-        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
-    let models: [&CostedModel; CONTEXTS * CENTRES] =
-        std::array::from_fn(|m| encoder_model(scales[m / CENTRES], m % CENTRES));
-    let mut coder = DefaultAnsCoder::new();
-    let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
-    for &(z, m) in syms.iter().rev() {
-        let (b, extra, bits) = bucket(z);
-        for (shift, width) in chunks(extra).rev() {
-            let v = (bits >> shift) & ((1 << width) - 1);
-            coder
-                .encode_symbol(v as usize, uniform[width as usize])
-                .unwrap_or_else(fail);
-        }
-        coder
-            .encode_symbol(b, &models[m as usize].0)
-            .unwrap_or_else(fail);
-    }
-    coder
-        .into_compressed()
-        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"))
-}
-
 /// Encode the LOD 0 samples of a full `(w+1)²` grid of source values with
 /// max error `k`: the record payload.
 pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
@@ -369,7 +343,9 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
     // Source indices are in range and every residual is exact.
     walk(&mut res, &mut g).unwrap_or_else(|e| unreachable!("encoding in-range indices: {e}"));
     let scales: [u8; CONTEXTS] = std::array::from_fn(|c| best_scale(&res.hist[c]));
-    let words = rans_words(&res.syms, &scales);
+    let models: [&CostedModel; CONTEXTS * CENTRES] =
+        std::array::from_fn(|m| encoder_model(scales[m / CENTRES], m % CENTRES));
+    let words = rans_encode(&res.syms, |m| &models[m as usize].0);
     let mut out = Vec::with_capacity(CONTEXTS + 4 * words.len());
     out.extend_from_slice(&scales);
     for w in words {
@@ -453,35 +429,13 @@ impl Sampler for Decoder {
     }
 }
 
-/// The rANS stack of little-endian words.
-fn stack(bytes: &[u8]) -> Result<DefaultAnsCoder, CodecError> {
-    let words: Vec<u32> = bytes
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect();
-    DefaultAnsCoder::from_compressed(words)
-        .map_err(|_| CodecError::Rans("compressed data ends in a zero word".into()))
-}
-
 /// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
 /// decoded samples; every new sample ends within `k` of its source value.
 pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
     let side = w + 1;
-    if grid.len() != side * side {
-        return Err(CodecError::Grid {
-            got: grid.len(),
-            expected: side * side,
-        });
-    }
-    if raw.len() < CONTEXTS || !(raw.len() - CONTEXTS).is_multiple_of(4) {
-        return Err(CodecError::Length {
-            got: raw.len(),
-            expected: CONTEXTS,
-        });
-    }
-    let (scales, body) = raw.split_at(CONTEXTS);
+    let (scales, coder) = open(raw, CONTEXTS, side, grid)?;
     let mut dec = Decoder {
-        coder: stack(body)?,
+        coder,
         models: std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES)),
         uniform: std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1))),
     };
@@ -516,10 +470,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
 
 #[cfg(test)]
 mod tests {
-    use super::super::elevation::tests::{
-        check_bound, check_constant_and_cliff, check_truncated_and_padded, hostile_grid,
-        max_errors, Codec,
-    };
+    use super::super::elevation::tests::{check_bound, max_errors, Codec};
     use super::*;
     use proptest::prelude::*;
 
@@ -556,11 +507,6 @@ mod tests {
 
     proptest! {
         #[test]
-        fn every_sample_within_the_bound(samples in hostile_grid(), k in max_errors()) {
-            check_bound(ID2, &samples, k);
-        }
-
-        #[test]
         fn smooth_terrain_within_the_bound(
             seed in any::<u32>(),
             slope in -300i32..300,
@@ -576,21 +522,5 @@ mod tests {
                 .collect();
             check_bound(ID2, &samples, k);
         }
-
-        #[test]
-        fn hostile_payloads_are_typed_errors(raw in proptest::collection::vec(any::<u8>(), 0..1500), k in 0..5u16) {
-            let mut grid = vec![7i16; 17 * 17];
-            let _ = decode(&raw, 16, k, &mut grid);
-        }
-    }
-
-    #[test]
-    fn constant_and_cliff_blocks() {
-        check_constant_and_cliff(ID2);
-    }
-
-    #[test]
-    fn truncated_and_padded_payloads_are_errors() {
-        check_truncated_and_padded(ID2);
     }
 }
