@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Bytes per sample of the record codecs (docs/BENCHMARKS.md "Bytes per
 # sample"): builds each database with the legacy codecs and the format v2
-# ones, prints a table of bytes per sample from `planet-build inspect --json`
+# ones (elevation ids 1 and 2), prints a table of bytes per sample from
+# `planet-build inspect --json`
 # and the error against the source from `planet-build verify --json` with the
 # build's source options.
 #
@@ -24,13 +25,15 @@ declare -A SRC=(
 )
 declare -A VARIANT=(
   [legacy]="--elevation-codec legacy --colour-quality lossless-legacy"
+  [id1]="--elevation-codec quantised-1"
   [lossless]="--colour-quality lossless"
   [default]=""
+  [1m-id1]="--elevation-codec quantised-1 --max-error 1"
   [1m]="--max-error 1"
 )
 for s in $SETS; do
-  variants="legacy lossless default 1m"
-  [ "$s" = deep ] && variants="legacy default 1m"
+  variants="legacy id1 lossless default 1m-id1 1m"
+  [ "$s" = deep ] && variants="legacy default 1m-id1 1m"
   for v in $variants; do
     db="$OUT/$s-$v.planetdb"
     echo "# $B build ${SRC[$s]} ${VARIANT[$v]} --quiet --out $db" >&2
@@ -54,7 +57,7 @@ print("| data | codecs | elevation B/sample | × legacy | colour B/texel | × le
 print("|---|---|---|---|---|---|---|---|---|")
 for s in sets:
     leg = load(f"{out}/{s}-legacy.inspect.json")
-    for v in ["legacy", "lossless", "default", "1m"]:
+    for v in ["legacy", "id1", "lossless", "default", "1m-id1", "1m"]:
         r = load(f"{out}/{s}-{v}.inspect.json")
         if r is None:
             continue

@@ -20,6 +20,27 @@ use planet_core::lod::{self, Rgb};
 use std::hint::black_box;
 
 const EW: usize = 64;
+
+/// The elevation codecs measured: legacy, ids 1 and 2 exact and at 1 m.
+const ELEVATION_CODECS: [(&str, ElevationCodec); 5] = [
+    ("elevation legacy", ElevationCodec::Legacy),
+    (
+        "elevation id 1 exact",
+        ElevationCodec::Quantised { max_error: 0 },
+    ),
+    (
+        "elevation id 1 1 m",
+        ElevationCodec::Quantised { max_error: 1 },
+    ),
+    (
+        "elevation id 2 exact",
+        ElevationCodec::Laplace { max_error: 0 },
+    ),
+    (
+        "elevation id 2 1 m",
+        ElevationCodec::Laplace { max_error: 1 },
+    ),
+];
 const CW: usize = 128;
 const BLOCKS: usize = 32;
 
@@ -121,14 +142,7 @@ fn cpu_table() {
     let side = EW + 1;
     let en = (BLOCKS * lod::elevation_new_samples(EW)) as u64;
     let mut rows = Vec::new();
-    for (name, codec) in [
-        ("elevation legacy", ElevationCodec::Legacy),
-        (
-            "elevation exact",
-            ElevationCodec::Quantised { max_error: 0 },
-        ),
-        ("elevation 1 m", ElevationCodec::Quantised { max_error: 1 }),
-    ] {
+    for (name, codec) in ELEVATION_CODECS {
         let payloads: Vec<_> = eblocks.iter().map(|b| codec.encode(b, EW)).collect();
         let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
         let enc = per_cpu_second(en, || {
@@ -207,15 +221,11 @@ fn elevation(c: &mut Criterion) {
     let n = (BLOCKS * lod::elevation_new_samples(EW)) as u64;
     let mut g = c.benchmark_group("elevation");
     g.throughput(Throughput::Elements(n));
-    for (name, codec) in [
-        ("legacy", ElevationCodec::Legacy),
-        ("exact", ElevationCodec::Quantised { max_error: 0 }),
-        ("1m", ElevationCodec::Quantised { max_error: 1 }),
-    ] {
+    for (name, codec) in ELEVATION_CODECS {
         let payloads: Vec<_> = blocks.iter().map(|b| codec.encode(b, EW)).collect();
         let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
         println!(
-            "elevation {name}: {:.4} bytes per new sample",
+            "{name}: {:.4} bytes per new sample",
             bytes as f64 / n as f64
         );
         g.bench_function(BenchmarkId::new("encode", name), |bench| {

@@ -1,6 +1,9 @@
 //! Measures elevation predictor / entropy-coder variants on a database's
 //! decoded grids (for choosing the codec): `cargo run --release -p
-//! planet-core --example codec_lab -- DB [k]`.
+//! planet-core --example codec_lab -- DB [k]`; `DB decode` measures the
+//! decode rate of a database's own records, `DB payload k` the payload size
+//! of each quantised codec on an exact database's grids.
+use planet_core::codec::ElevationCodec;
 use planet_core::format::{parse_record, DbFile};
 use planet_core::lod;
 use planet_core::{BlockId, Face};
@@ -202,10 +205,61 @@ fn decode_rate(path: &str) {
     );
 }
 
+/// Payload bytes per new sample of every quantised codec on an exact
+/// database's grids at max error `k` (each grid's LOD 1 is its source).
+fn payload_sizes(path: &str, k: u16) {
+    let gs = grids(path);
+    let side = (gs[0].len() as f64).sqrt() as usize;
+    let n = (gs.len() * lod::elevation_new_samples(side - 1)) as f64;
+    for codec in [
+        ElevationCodec::Quantised { max_error: k },
+        ElevationCodec::Laplace { max_error: k },
+    ] {
+        let w = side - 1;
+        let start = cpu_ns();
+        let payloads: Vec<_> = gs.iter().map(|g| codec.encode(g, w)).collect();
+        let enc = n / ((cpu_ns() - start) as f64 * 1e-9);
+        let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
+        // Each grid's LOD 1 (the source: the quantisation is pointwise).
+        let firsts: Vec<Vec<i16>> = gs
+            .iter()
+            .map(|g| {
+                let mut f = vec![0i16; side * side];
+                lod::elevation_place_first_lod(&lod::elevation_first_lod(g, w), w, &mut f);
+                f
+            })
+            .collect();
+        let mut grid = vec![0i16; side * side];
+        let (start, mut runs) = (cpu_ns(), 0);
+        while cpu_ns() - start < 2_000_000_000 {
+            for (p, f) in payloads.iter().zip(&firsts) {
+                grid.copy_from_slice(f);
+                codec
+                    .decode(&p.bytes, p.raw_len as usize, w, &mut grid)
+                    .unwrap();
+            }
+            runs += 1;
+        }
+        let dec = runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9);
+        println!(
+            "{} k {k}: {:.4} B per new sample ({} grids), encode {:.1} M, decode {:.1} M samples per CPU-second",
+            codec.name(),
+            bytes as f64 / n,
+            gs.len(),
+            enc / 1e6,
+            dec / 1e6
+        );
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if args.get(2).map(String::as_str) == Some("decode") {
         return decode_rate(&args[1]);
+    }
+    if args.get(2).map(String::as_str) == Some("payload") {
+        let k = args.get(3).map_or(0, |s| s.parse().unwrap());
+        return payload_sizes(&args[1], k);
     }
     let gs = grids(&args[1]);
     let k: i32 = args.get(2).map_or(0, |s| s.parse().unwrap());

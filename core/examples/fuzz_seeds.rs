@@ -43,13 +43,13 @@ fn main() -> std::io::Result<()> {
     );
     std::fs::write(rec_dir.join("seed-elevation-leaf"), leaf)?;
     for k in [0u16, 3] {
-        let rec = encode_record(
-            Tree::Elevation,
-            block,
-            &[],
-            &ElevationCodec::Quantised { max_error: k }.encode(&grid, w),
-        );
-        std::fs::write(rec_dir.join(format!("seed-elevation-quantised-{k}")), rec)?;
+        for (name, c) in [
+            ("quantised", ElevationCodec::Quantised { max_error: k }),
+            ("laplace", ElevationCodec::Laplace { max_error: k }),
+        ] {
+            let rec = encode_record(Tree::Elevation, block, &[], &c.encode(&grid, w));
+            std::fs::write(rec_dir.join(format!("seed-elevation-{name}-{k}")), rec)?;
+        }
     }
     let cw = 128;
     let full: Vec<[u8; 3]> = (0..cw * cw)
@@ -68,7 +68,11 @@ fn main() -> std::io::Result<()> {
         std::fs::write(rec_dir.join(name), rec)?;
     }
     let eh = (w / 2 + 1) * (w / 2 + 1);
-    for with_colour in [false, true] {
+    for (with_colour, codec) in [
+        (false, ElevationCodec::Quantised { max_error: 1 }),
+        (true, ElevationCodec::Quantised { max_error: 1 }),
+        (true, ElevationCodec::Laplace { max_error: 1 }),
+    ] {
         let h = Header {
             datum: Datum::WGS84,
             elevation_scale: 1.0,
@@ -77,7 +81,7 @@ fn main() -> std::io::Result<()> {
             max_elevation: 400.0,
             elevation: TreeInfo {
                 block_width: w as u16,
-                codec: ElevationCodec::Quantised { max_error: 1 },
+                codec,
                 max_level: 3,
                 root_records: [kid; 6],
                 root_first_lods: std::array::from_fn(|_| vec![7i16; eh]),
@@ -92,7 +96,10 @@ fn main() -> std::io::Result<()> {
             description: "fuzz seed".into(),
         };
         std::fs::write(
-            hdr_dir.join(format!("seed-header-{with_colour}")),
+            hdr_dir.join(match codec {
+                ElevationCodec::Laplace { .. } => format!("seed-header-{with_colour}-laplace"),
+                _ => format!("seed-header-{with_colour}"),
+            }),
             h.encode(),
         )?;
     }

@@ -976,6 +976,10 @@ mod tests {
                 ElevationCodec::Quantised { max_error: 7 },
                 ColourCodec::Haar(codec::colour::HaarParams::for_psnr(38.0)),
             ),
+            (
+                ElevationCodec::Laplace { max_error: 1 },
+                ColourCodec::Haar(codec::colour::HaarParams::for_psnr(42.0)),
+            ),
         ] {
             let mut h = sample_header(true);
             h.elevation.codec = e;

@@ -79,9 +79,13 @@ pub struct BuildOptions {
 pub enum ElevationChoice {
     /// Format v1's lossless lz4 byte planes (for comparisons).
     Legacy,
-    /// Quantised and zstd-coded with this maximum error in metres (0: the
-    /// source's own exactness), rounded down to whole stored units.
+    /// Quantised and rANS-coded (codec id 2) with this maximum error in
+    /// metres (0: the source's own exactness), rounded down to whole stored
+    /// units.
     MaxError(f64),
+    /// The same with format v2's first elevation codec (id 1, for
+    /// comparisons).
+    MaxErrorId1(f64),
 }
 
 /// The colour quality asked for (`planet-build build --colour-quality`).
@@ -141,7 +145,7 @@ impl CodecOptions {
     pub fn resolve(&self, scale: f64) -> Result<(ElevationCodec, ColourCodec), BuildError> {
         let e = match self.elevation {
             ElevationChoice::Legacy => ElevationCodec::Legacy,
-            ElevationChoice::MaxError(m) => {
+            ElevationChoice::MaxError(m) | ElevationChoice::MaxErrorId1(m) => {
                 let k = (m / scale).floor();
                 if !(m >= 0.0 && k <= planet_core::codec::elevation::MAX_ERROR_LIMIT as f64) {
                     return Err(BuildError::Options(format!(
@@ -149,8 +153,11 @@ impl CodecOptions {
                         planet_core::codec::elevation::MAX_ERROR_LIMIT as f64 * scale
                     )));
                 }
-                ElevationCodec::Quantised {
-                    max_error: k as u16,
+                let max_error = k as u16;
+                if matches!(self.elevation, ElevationChoice::MaxErrorId1(_)) {
+                    ElevationCodec::Quantised { max_error }
+                } else {
+                    ElevationCodec::Laplace { max_error }
                 }
             }
         };

@@ -446,7 +446,8 @@ pub fn inspect(path: &Path) -> Result<InspectReport, DbError> {
     let ec: ElevationCodec = h.elevation.codec;
     trees[0].codec = ec.name().into();
     trees[0].codec_id = ec.id();
-    if let ElevationCodec::Quantised { max_error } = ec {
+    if ec != ElevationCodec::Legacy {
+        let max_error = ec.max_error();
         let p = &mut trees[0].codec_params;
         p.insert("max_error_units".into(), max_error as f64);
         p.insert(

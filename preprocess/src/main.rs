@@ -91,9 +91,10 @@ enum Cmd {
         /// quantisation).
         #[arg(long, default_value_t = 0.0)]
         max_error: f64,
-        /// Elevation codec: `quantised` (zstd, honours --max-error) or
+        /// Elevation codec: `quantised` (rANS, codec id 2, honours
+        /// --max-error), `quantised-1` (codec id 1, for comparisons) or
         /// `legacy` (format v1's lossless lz4 byte planes, for comparisons).
-        #[arg(long, default_value = "quantised", value_parser = ["quantised", "legacy"])]
+        #[arg(long, default_value = "quantised", value_parser = ["quantised", "quantised-1", "legacy"])]
         elevation_codec: String,
         /// Colour quality: a PSNR in dB against the source (Haar details,
         /// zstd), `lossless` (PTM deltas, zstd) or `lossless-legacy` (format
@@ -222,6 +223,8 @@ fn run() -> Result<()> {
                         bail!("--max-error needs --elevation-codec quantised");
                     }
                     ElevationChoice::Legacy
+                } else if elevation_codec == "quantised-1" {
+                    ElevationChoice::MaxErrorId1(max_error)
                 } else {
                     ElevationChoice::MaxError(max_error)
                 },

@@ -386,6 +386,7 @@ fn codecs_meet_their_bounds_against_the_source() {
         (ElevationChoice::Legacy, ColourQuality::LosslessLegacy),
         (ElevationChoice::MaxError(0.0), ColourQuality::Lossless),
         (ElevationChoice::MaxError(3.0), ColourQuality::Psnr(36.0)),
+        (ElevationChoice::MaxErrorId1(3.0), ColourQuality::Psnr(36.0)),
         (ElevationChoice::MaxError(0.0), ColourQuality::Psnr(45.0)),
     ] {
         let path = dir.path().join("c.db");
@@ -396,7 +397,7 @@ fn codecs_meet_their_bounds_against_the_source() {
         let rep = planet_preprocess::db::verify_against(&path, Some(&src)).unwrap();
         let bound = match elevation {
             ElevationChoice::Legacy => 0.0,
-            ElevationChoice::MaxError(m) => m,
+            ElevationChoice::MaxError(m) | ElevationChoice::MaxErrorId1(m) => m,
         };
         assert_eq!(rep.elevation_bound_m, Some(bound));
         assert!(rep.elevation_max_error_m.unwrap() <= bound);

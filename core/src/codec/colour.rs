@@ -109,7 +109,9 @@ fn steps(p: &HaarParams, shift: u8) -> [f32; 3] {
 
 #[inline]
 fn quantise(c: f32, step: f32) -> i32 {
-    let q = (c.abs() / step + ROUNDING).floor() as i32;
+    // Truncation is the floor of this non-negative value, without a libm
+    // call (5 % of a build's time).
+    let q = (c.abs() / step + ROUNDING) as i32;
     if c < 0.0 {
         -q
     } else {

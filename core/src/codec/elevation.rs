@@ -23,7 +23,8 @@
 //! neighbours' difference, 8 classes): per record and context one byte, the
 //! scale `σ = round(8·log2(1 + mean z))`, selects a geometric distribution
 //! of mean `2^(σ/8) − 1` over `z`, summed into buckets and quantised to 12
-//! bits (a lookup decoder model; all 256 are built once per process).
+//! bits (a compact table decoder model, [`super::model`]; all 256 are built
+//! once per process, when first used).
 //! Measured on the real data's residuals (docs/BENCHMARKS.md "Bytes per
 //! sample"), this is 8–12 % under zstd -9 of the same residual bytes and
 //! within 2 % of their context-conditioned empirical entropy.
@@ -32,11 +33,10 @@
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them: decode
 //! pops from the end). There is no further entropy layer.
 
+use super::model::CompactDecoder;
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
-use constriction::stream::model::{
-    SmallContiguousCategoricalEntropyModel, SmallContiguousLookupDecoderModel, SmallUniformModel,
-};
+use constriction::stream::model::{SmallContiguousCategoricalEntropyModel, SmallUniformModel};
 use constriction::stream::stack::DefaultAnsCoder;
 use constriction::stream::{Decode, Encode};
 use std::sync::OnceLock;
@@ -47,7 +47,7 @@ pub const MAX_ERROR_LIMIT: u16 = 16_383;
 /// Context classes.
 const CONTEXTS: usize = 8;
 /// Values coded directly as their own bucket.
-const DIRECT: u32 = 16;
+pub(super) const DIRECT: u32 = 16;
 /// Buckets: 16 direct values, then bit lengths 5..=32.
 const BUCKETS: usize = DIRECT as usize + 28;
 
@@ -58,15 +58,59 @@ pub fn max_raw_len(w: usize) -> usize {
     CONTEXTS + 4 * (6 * elevation_new_samples(w) + 2)
 }
 
+/// The quantisation of max error `k`: step `s = 2k + 1`, with the division
+/// by `s` as a multiplication (exact for every `i16`, see [`Self::index`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Quantiser {
+    k: i32,
+    s: i32,
+    /// A multiple of `s` at least 32 768, so that `v + k + offset ≥ 0`.
+    offset: i32,
+    /// `⌊2⁴⁰/s⌋ + 1`.
+    inverse: u64,
+}
+
+impl Quantiser {
+    pub(super) fn new(k: u16) -> Quantiser {
+        let (k, s) = (k as i32, 2 * k as i32 + 1);
+        Quantiser {
+            k,
+            s,
+            offset: s * ((32_768 + s - 1) / s),
+            inverse: (1u64 << 40) / s as u64 + 1,
+        }
+    }
+
+    /// `⌊(v + k)/s⌋`: with `n = v + k + offset < 2¹⁷`, `n·inverse/2⁴⁰`
+    /// exceeds `n/s` by less than `2¹⁷/2⁴⁰`, less than the `1/s ≥ 2⁻¹⁵` by
+    /// which a non-integer `n/s` falls short of the next integer.
+    #[inline(always)]
+    pub(super) fn index(&self, v: i16) -> i32 {
+        let n = (v as i32 + self.k + self.offset) as u64;
+        ((n * self.inverse) >> 40) as i32 - self.offset / self.s
+    }
+
+    /// The stored value of an index, clamped to `i16`.
+    #[inline(always)]
+    pub(super) fn value(&self, q: i32) -> i16 {
+        value(q, self.s)
+    }
+
+    /// The indices of `i16::MIN` and `i16::MAX`.
+    pub(super) fn range(&self) -> (i32, i32) {
+        (self.index(i16::MIN), self.index(i16::MAX))
+    }
+}
+
 /// Quantisation index of a stored value.
 #[inline]
-fn index(v: i16, k: i32, s: i32) -> i32 {
+pub(super) fn index(v: i16, k: i32, s: i32) -> i32 {
     (v as i32 + k).div_euclid(s)
 }
 
 /// The stored value of an index, clamped to `i16`.
 #[inline]
-fn value(q: i32, s: i32) -> i16 {
+pub(super) fn value(q: i32, s: i32) -> i16 {
     (q as i64 * s as i64).clamp(i16::MIN as i64, i16::MAX as i64) as i16
 }
 
@@ -140,7 +184,7 @@ fn for_each_new(
 
 /// Bucket of a zig-zagged residual and its extra bits `(count, value)`.
 #[inline]
-fn bucket(z: u32) -> (usize, u32, u32) {
+pub(super) fn bucket(z: u32) -> (usize, u32, u32) {
     if z < DIRECT {
         (z as usize, 0, 0)
     } else {
@@ -190,21 +234,16 @@ fn encoder_model(scale: u8) -> &'static SmallContiguousCategoricalEntropyModel {
     })
 }
 
-/// The lookup decoder model of scale `σ` (8 kB), built on first use.
-fn decoder_model(scale: u8) -> &'static SmallContiguousLookupDecoderModel {
-    static MODELS: [OnceLock<SmallContiguousLookupDecoderModel>; 256] =
-        [const { OnceLock::new() }; 256];
-    MODELS[scale as usize].get_or_init(|| {
-        SmallContiguousLookupDecoderModel::from_floating_point_probabilities_perfect(
-            &bucket_probabilities(scale),
-        )
-        .unwrap_or_else(|_| unreachable!("finite positive probabilities"))
-    })
+/// The decoder model of scale `σ` (330 bytes), built on first use from the
+/// encoder's.
+fn decoder_model(scale: u8) -> &'static CompactDecoder<BUCKETS> {
+    static MODELS: [OnceLock<CompactDecoder<BUCKETS>>; 256] = [const { OnceLock::new() }; 256];
+    MODELS[scale as usize].get_or_init(|| CompactDecoder::new(encoder_model(scale)))
 }
 
 /// Uniform chunks of at most 8 bits of `count` extra bits, low chunk first.
 #[inline]
-fn chunks(count: u32) -> impl DoubleEndedIterator<Item = (u32, u32)> {
+pub(super) fn chunks(count: u32) -> impl DoubleEndedIterator<Item = (u32, u32)> {
     (0..count.div_ceil(8)).map(move |c| (8 * c, (count - 8 * c).min(8)))
 }
 
@@ -231,23 +270,7 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
         (8.0 * (1.0 + mean).log2()).round().clamp(0.0, 255.0) as u8
     });
     let m: [_; CONTEXTS] = std::array::from_fn(|c| encoder_model(scales[c]));
-    let uniform: [SmallUniformModel; 9] =
-        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
-    let mut coder = DefaultAnsCoder::new();
-    let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
-    for &(z, c) in syms.iter().rev() {
-        let (b, extra, bits) = bucket(z);
-        for (shift, width) in chunks(extra).rev() {
-            let v = (bits >> shift) & ((1 << width) - 1);
-            coder
-                .encode_symbol(v as usize, uniform[width as usize])
-                .unwrap_or_else(fail);
-        }
-        coder.encode_symbol(b, m[c as usize]).unwrap_or_else(fail);
-    }
-    let words = coder
-        .into_compressed()
-        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"));
+    let words = rans_encode(&syms, |c| m[c as usize]);
     let mut out = Vec::with_capacity(CONTEXTS + 4 * words.len());
     out.extend_from_slice(&scales);
     for w in words {
@@ -256,29 +279,67 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
     out
 }
 
-/// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
-/// decoded samples; every new sample ends within `k` of its source value.
-pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
-    let side = w + 1;
+/// rANS words of bucketed residuals `(z, model)` in coding order (written
+/// in reverse so that the decoder reads them in coding order), each bucket
+/// with the model `model` gives, the low bits uniform (ids 1 and 2).
+pub(super) fn rans_encode(
+    syms: &[(u32, u8)],
+    model: impl Fn(u8) -> &'static SmallContiguousCategoricalEntropyModel,
+) -> Vec<u32> {
+    let uniform: [SmallUniformModel; 9] =
+        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
+    let mut coder = DefaultAnsCoder::new();
+    let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
+    for &(z, m) in syms.iter().rev() {
+        let (b, extra, bits) = bucket(z);
+        for (shift, width) in chunks(extra).rev() {
+            let v = (bits >> shift) & ((1 << width) - 1);
+            coder
+                .encode_symbol(v as usize, uniform[width as usize])
+                .unwrap_or_else(fail);
+        }
+        coder.encode_symbol(b, model(m)).unwrap_or_else(fail);
+    }
+    coder
+        .into_compressed()
+        .unwrap_or_else(|e| unreachable!("rANS into a Vec: {e:?}"))
+}
+
+/// The checks and parts of a quantised payload (ids 1 and 2) for a grid of
+/// `side²` samples: `heads` scale bytes, then the rANS words.
+pub(super) fn open<'a>(
+    raw: &'a [u8],
+    heads: usize,
+    side: usize,
+    grid: &[i16],
+) -> Result<(&'a [u8], DefaultAnsCoder), CodecError> {
     if grid.len() != side * side {
         return Err(CodecError::Grid {
             got: grid.len(),
             expected: side * side,
         });
     }
-    if raw.len() < CONTEXTS || !(raw.len() - CONTEXTS).is_multiple_of(4) {
+    if raw.len() < heads || !(raw.len() - heads).is_multiple_of(4) {
         return Err(CodecError::Length {
             got: raw.len(),
-            expected: CONTEXTS,
+            expected: heads,
         });
     }
-    let (scales, body) = raw.split_at(CONTEXTS);
+    let (scales, body) = raw.split_at(heads);
     let words: Vec<u32> = body
         .chunks_exact(4)
         .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
-    let mut coder = DefaultAnsCoder::from_compressed(words)
+    let coder = DefaultAnsCoder::from_compressed(words)
         .map_err(|_| CodecError::Rans("compressed data ends in a zero word".into()))?;
+    Ok((scales, coder))
+}
+
+/// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
+/// decoded samples; every new sample ends within `k` of its source value.
+pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
+    let side = w + 1;
+    let (scales, mut coder) = open(raw, CONTEXTS, side, grid)?;
     let m: [_; CONTEXTS] = std::array::from_fn(|c| decoder_model(scales[c]));
     let (k, s) = (k as i32, 2 * k as i32 + 1);
     let (lo, hi) = (index(i16::MIN, k, s), index(i16::MAX, k, s));
@@ -293,7 +354,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
         std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
     let mut next = |c: usize| -> Result<u32, CodecError> {
         let rans = |e| CodecError::Rans(format!("{e:?}"));
-        let b = coder.decode_symbol(m[c].as_view()).map_err(rans)?;
+        let b = coder.decode_symbol(m[c]).map_err(rans)?;
         if b < DIRECT as usize {
             return Ok(b as u32);
         }
@@ -319,7 +380,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use proptest::prelude::*;
 
@@ -348,8 +409,16 @@ mod tests {
         }
     }
 
-    /// A grid of random values with extremes, cliffs and constant runs.
-    fn hostile_grid() -> impl Strategy<Value = Vec<i16>> {
+    /// A quantised codec's encoder, decoder and payload limit (ids 1 and
+    /// 2; the tests below run on both).
+    pub(in crate::codec) type Codec = (
+        fn(&[i16], usize, u16) -> Vec<u8>,
+        fn(&[u8], usize, u16, &mut [i16]) -> Result<(), CodecError>,
+        fn(usize) -> usize,
+    );
+
+    /// A 17² grid of random values with extremes, cliffs and constant runs.
+    pub(in crate::codec) fn hostile_grid() -> impl Strategy<Value = Vec<i16>> {
         proptest::collection::vec(
             prop_oneof![
                 any::<i16>(),
@@ -363,10 +432,16 @@ mod tests {
         )
     }
 
-    fn round_trip(samples: &[i16], k: u16) -> Vec<i16> {
+    /// Max errors to try: exact, 1, random and the largest.
+    pub(in crate::codec) fn max_errors() -> impl Strategy<Value = u16> {
+        prop_oneof![Just(0u16), Just(1), 0..2000u16, Just(MAX_ERROR_LIMIT)]
+    }
+
+    /// Encode a 17² grid and decode it from its LOD 1 as the parent
+    /// decoded it (the source quantised the same way).
+    pub(in crate::codec) fn round_trip(codec: Codec, samples: &[i16], k: u16) -> Vec<i16> {
         let w = 16;
         let side = w + 1;
-        // The parent's decoded LOD 1: the source quantised the same way.
         let s = 2 * k as i32 + 1;
         let mut grid = vec![0i16; side * side];
         for j in (0..side).step_by(2) {
@@ -375,63 +450,112 @@ mod tests {
                 grid[j * side + i] = value(index(v, k as i32, s), s);
             }
         }
-        let enc = encode(samples, w, k);
-        assert!(enc.len() <= max_raw_len(w));
-        decode(&enc, w, k, &mut grid).unwrap();
+        let enc = codec.0(samples, w, k);
+        assert!(enc.len() <= codec.2(w));
+        codec.1(&enc, w, k, &mut grid).unwrap();
         grid
     }
 
+    /// Every decoded sample is within `k` of the source; `k = 0` is exact.
+    pub(in crate::codec) fn check_bound(codec: Codec, samples: &[i16], k: u16) {
+        let dec = round_trip(codec, samples, k);
+        for (p, (a, b)) in dec.iter().zip(samples).enumerate() {
+            assert!(
+                (*a as i32 - *b as i32).abs() <= k as i32,
+                "sample {p} {a} vs {b} k {k}"
+            );
+        }
+        if k == 0 {
+            assert_eq!(dec, samples);
+        }
+    }
+
+    /// Constant blocks round-trip exactly, cliffs between the extremes
+    /// within the bound.
+    pub(in crate::codec) fn check_constant_and_cliff(codec: Codec) {
+        let side = 17;
+        let constant = vec![1234i16; side * side];
+        assert_eq!(round_trip(codec, &constant, 0), constant);
+        let cliff: Vec<i16> = (0..side * side)
+            .map(|p| if p % side < 8 { i16::MIN } else { i16::MAX })
+            .collect();
+        for k in [0, 1, 3, 100, MAX_ERROR_LIMIT] {
+            check_bound(codec, &cliff, k);
+        }
+    }
+
+    /// Truncated, padded and mis-sized inputs are errors.
+    pub(in crate::codec) fn check_truncated_and_padded(codec: Codec) {
+        let w = 16;
+        let samples: Vec<i16> = (0..17 * 17)
+            .map(|v| ((v * 37 % 1000) * 40 - 20000) as i16)
+            .collect();
+        let enc = codec.0(&samples, w, 0);
+        let mut grid = vec![0i16; 17 * 17];
+        for cut in [0, 1, enc.len() / 2, enc.len() - 1] {
+            assert!(codec.1(&enc[..cut], w, 0, &mut grid).is_err(), "cut {cut}");
+        }
+        let mut long = enc.clone();
+        long.extend_from_slice(&[0, 0, 0, 0]);
+        assert!(codec.1(&long, w, 0, &mut grid).is_err());
+        assert!(codec.1(&enc, w, 0, &mut [0i16; 4]).is_err());
+    }
+
+    /// Ids 1 and 2.
+    const CODECS: [Codec; 2] = [
+        (encode, decode, max_raw_len),
+        (
+            super::super::elevation2::encode,
+            super::super::elevation2::decode,
+            super::super::elevation2::max_raw_len,
+        ),
+    ];
+
     proptest! {
         #[test]
-        fn every_sample_within_the_bound(samples in hostile_grid(), k in prop_oneof![Just(0u16), Just(1), 0..2000u16, Just(MAX_ERROR_LIMIT)]) {
-            let dec = round_trip(&samples, k);
-            for (p, (a, b)) in dec.iter().zip(&samples).enumerate() {
-                prop_assert!((*a as i32 - *b as i32).abs() <= k as i32, "sample {} {} vs {} k {}", p, a, b, k);
-            }
-            if k == 0 {
-                prop_assert_eq!(dec, samples);
+        fn every_sample_within_the_bound(samples in hostile_grid(), k in max_errors()) {
+            for codec in CODECS {
+                check_bound(codec, &samples, k);
             }
         }
 
         #[test]
         fn hostile_payloads_are_typed_errors(raw in proptest::collection::vec(any::<u8>(), 0..1500), k in 0..5u16) {
-            let mut grid = vec![7i16; 17 * 17];
-            let _ = decode(&raw, 16, k, &mut grid);
+            for codec in CODECS {
+                let mut grid = vec![7i16; 17 * 17];
+                let _ = codec.1(&raw, 16, k, &mut grid);
+            }
         }
     }
 
     #[test]
     fn constant_and_cliff_blocks() {
-        let w = 16;
-        let side = w + 1;
-        let constant = vec![1234i16; side * side];
-        assert_eq!(round_trip(&constant, 0), constant);
-        let cliff: Vec<i16> = (0..side * side)
-            .map(|p| if p % side < 8 { i16::MIN } else { i16::MAX })
-            .collect();
-        for k in [0, 1, 3, 100] {
-            let dec = round_trip(&cliff, k);
-            assert!(dec
-                .iter()
-                .zip(&cliff)
-                .all(|(a, b)| (*a as i32 - *b as i32).abs() <= k as i32));
+        for codec in CODECS {
+            check_constant_and_cliff(codec);
         }
     }
 
     #[test]
     fn truncated_and_padded_payloads_are_errors() {
-        let w = 16;
-        let samples: Vec<i16> = (0..17 * 17)
-            .map(|v| ((v * 37 % 1000) * 40 - 20000) as i16)
-            .collect();
-        let enc = encode(&samples, w, 0);
-        let mut grid = vec![0i16; 17 * 17];
-        for cut in [0, 1, enc.len() / 2, enc.len() - 1] {
-            assert!(decode(&enc[..cut], w, 0, &mut grid).is_err(), "cut {cut}");
+        for codec in CODECS {
+            check_truncated_and_padded(codec);
         }
-        let mut long = enc.clone();
-        long.extend_from_slice(&[0, 0, 0, 0]);
-        assert!(decode(&long, w, 0, &mut grid).is_err());
-        assert!(decode(&enc, w, 0, &mut [0i16; 4]).is_err());
+    }
+
+    /// The multiplicative division equals floor division for every `i16`
+    /// and a spread of max errors, the largest included.
+    #[test]
+    fn quantiser_divides_exactly() {
+        for k in [0u16, 1, 2, 3, 7, 100, 1000, 4097, 16_382, MAX_ERROR_LIMIT] {
+            let quant = Quantiser::new(k);
+            let s = 2 * k as i32 + 1;
+            for v in i16::MIN..=i16::MAX {
+                assert_eq!(quant.index(v), index(v, k as i32, s), "v {v} k {k}");
+            }
+            assert_eq!(
+                quant.range(),
+                (index(i16::MIN, k as i32, s), index(i16::MAX, k as i32, s))
+            );
+        }
     }
 }

@@ -16,13 +16,19 @@
 //!   Raster Compression): samples quantised on a grid of step `2k + 1`
 //!   stored units, predicted from LOD 1 in the quantised domain, rANS with
 //!   context models (the `constriction` crate; no further entropy layer).
+//!   Codec id 1, still read.
+//! - [`elevation2`]: the same quantisation with predictions kept to 1/32 of
+//!   a step, curvature and neighbour contexts and Laplace models (codec
+//!   id 2, the default).
 //! - [`colour`]: perceptual colour, YCoCg Haar details of each 2×2 cell
 //!   against its LOD 1 mean (non-redundant, like the thesis's interleaving),
 //!   dead-zone quantised, zstd; and the lossless PTM deltas under zstd.
 
 pub mod colour;
 pub mod elevation;
+pub mod elevation2;
 pub mod legacy;
+mod model;
 
 pub use legacy::{compress, decompress};
 
@@ -102,6 +108,14 @@ impl Payload {
         }
     }
 
+    /// A payload the sample codec entropy-coded itself (no further layer).
+    pub fn unlayered(bytes: Vec<u8>) -> Payload {
+        Payload {
+            raw_len: bytes.len() as u32,
+            bytes,
+        }
+    }
+
     /// zstd of a raw payload at [`ZSTD_LEVEL`] (one compression context
     /// per thread, reused).
     pub fn zstd(raw: &[u8]) -> Payload {
@@ -171,6 +185,18 @@ pub fn unzstd(data: &[u8], raw_len: usize, limit: usize) -> Result<Vec<u8>, Code
     Ok(out)
 }
 
+/// A payload without an entropy layer must declare its own length, within
+/// the codec's `limit`.
+fn check_unlayered(payload: &[u8], raw_len: usize, limit: usize) -> Result<(), CodecError> {
+    if raw_len != payload.len() || raw_len > limit {
+        return Err(CodecError::TooLarge {
+            declared: raw_len,
+            limit: limit.min(payload.len()),
+        });
+    }
+    Ok(())
+}
+
 /// lz4 decompression with the declared length checked against `limit` first.
 pub fn unlz4(data: &[u8], raw_len: usize, limit: usize) -> Result<Vec<u8>, CodecError> {
     if raw_len > limit {
@@ -193,6 +219,12 @@ pub enum ElevationCodec {
         /// Largest absolute error of any decoded sample, stored units.
         max_error: u16,
     },
+    /// Id 2: the same quantisation, sub-step predictions, curvature and
+    /// neighbour contexts, Laplace models, rANS ([`elevation2`]).
+    Laplace {
+        /// Largest absolute error of any decoded sample, stored units.
+        max_error: u16,
+    },
 }
 
 impl ElevationCodec {
@@ -201,6 +233,7 @@ impl ElevationCodec {
         match self {
             ElevationCodec::Legacy => 0,
             ElevationCodec::Quantised { .. } => 1,
+            ElevationCodec::Laplace { .. } => 2,
         }
     }
 
@@ -208,7 +241,9 @@ impl ElevationCodec {
     pub fn param(&self) -> u16 {
         match self {
             ElevationCodec::Legacy => 0,
-            ElevationCodec::Quantised { max_error } => *max_error,
+            ElevationCodec::Quantised { max_error } | ElevationCodec::Laplace { max_error } => {
+                *max_error
+            }
         }
     }
 
@@ -218,6 +253,9 @@ impl ElevationCodec {
             (0, 0) => Ok(ElevationCodec::Legacy),
             (1, k) if k <= elevation::MAX_ERROR_LIMIT => {
                 Ok(ElevationCodec::Quantised { max_error: k })
+            }
+            (2, k) if k <= elevation::MAX_ERROR_LIMIT => {
+                Ok(ElevationCodec::Laplace { max_error: k })
             }
             _ => Err(CodecError::Codec(format!(
                 "elevation codec id {id} with parameter {param}"
@@ -235,6 +273,7 @@ impl ElevationCodec {
         match self {
             ElevationCodec::Legacy => "legacy-lz4-planes",
             ElevationCodec::Quantised { .. } => "quantised-rans",
+            ElevationCodec::Laplace { .. } => "quantised-rans-laplace",
         }
     }
 
@@ -242,13 +281,12 @@ impl ElevationCodec {
     pub fn encode(&self, grid: &[i16], w: usize) -> Payload {
         match self {
             ElevationCodec::Legacy => Payload::lz4(&legacy::encode_elevation(grid, w)),
+            // Entropy-coded by the sample codec itself (rANS).
             ElevationCodec::Quantised { max_error } => {
-                // Entropy-coded by the sample codec itself (rANS).
-                let bytes = elevation::encode(grid, w, *max_error);
-                Payload {
-                    raw_len: bytes.len() as u32,
-                    bytes,
-                }
+                Payload::unlayered(elevation::encode(grid, w, *max_error))
+            }
+            ElevationCodec::Laplace { max_error } => {
+                Payload::unlayered(elevation2::encode(grid, w, *max_error))
             }
         }
     }
@@ -276,14 +314,12 @@ impl ElevationCodec {
                 legacy::decode_elevation(&raw, w, grid)
             }
             ElevationCodec::Quantised { max_error } => {
-                let limit = elevation::max_raw_len(w);
-                if raw_len != payload.len() || raw_len > limit {
-                    return Err(CodecError::TooLarge {
-                        declared: raw_len,
-                        limit: limit.min(payload.len()),
-                    });
-                }
+                check_unlayered(payload, raw_len, elevation::max_raw_len(w))?;
                 elevation::decode(payload, w, *max_error, grid)
+            }
+            ElevationCodec::Laplace { max_error } => {
+                check_unlayered(payload, raw_len, elevation2::max_raw_len(w))?;
+                elevation2::decode(payload, w, *max_error, grid)
             }
         }
     }
