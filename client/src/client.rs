@@ -29,7 +29,7 @@ use crate::refinement::{sanitize_tolerance, Footprint, Kind, Policy, Refiner, DE
 use crate::request_queue::{
     select_tree_ops, OpKind, QueueConfig, RequestQueue, RetryBackoff, TreeOp,
 };
-use crate::selection::{DrawBlock, Selector};
+use crate::selection::{colour_holds_split, DrawBlock, Selector};
 use crate::stats::{FrameStats, Totals};
 use crate::tree::{
     decode_record, Decoded, FastMap, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
@@ -631,22 +631,7 @@ impl Client {
                 // wants children finer than the geometry needs, and may
                 // split only under a split elevation block, §4.4.1): kept
                 // while the colour block still wants them at arrival.
-                r.tree == Tree::Elevation
-                    && tree
-                        .colour()
-                        .and_then(|t| t.get(&r.block))
-                        .is_some_and(|c| {
-                            c.can_split_data().is_ok() && {
-                                let cm = later.measure(
-                                    Kind::Colour,
-                                    &fp,
-                                    cw,
-                                    c.record.error as f64,
-                                    c.child_error(),
-                                );
-                                later.leaf(&cm, c.lod).split
-                            }
-                        })
+                r.tree == Tree::Elevation && colour_holds_split(tree, later, &r.block, &fp)
             })
             .collect();
         if self.config.link_window {

@@ -1542,7 +1542,12 @@ fn exact_visible(view: &View, c: &mut Cold) -> bool {
 /// leaf whose LOD 0 colour asked for ([`Ctx::split_colour`]) is drawn at
 /// LOD 0: it splits in the next frame, its children drawn at LOD 1 from the
 /// same samples and triangles.
-fn colour_holds_split(tree: &PartialTree, refiner: &Refiner, id: &BlockId, fp: &Footprint) -> bool {
+pub(crate) fn colour_holds_split(
+    tree: &PartialTree,
+    refiner: &Refiner,
+    id: &BlockId,
+    fp: &Footprint,
+) -> bool {
     let Some(ct) = tree.colour() else {
         return false;
     };
