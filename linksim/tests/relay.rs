@@ -433,14 +433,18 @@ async fn parsed_config_drives_a_link() {
     let link = Link::start_symmetric(server, cfg).await.expect("start");
     let client = bind().await;
     // 1000-byte datagram: 8.2 ms serialisation each way + 60 ms propagation.
+    // The least of three pings: the link never delivers early, while a busy
+    // machine may deliver any one of them late.
     let payload = vec![7u8; 1000];
-    let rtt = ping(&client, link.local_addr(), &payload, Duration::from_secs(1))
-        .await
-        .expect("reply");
-    assert!(
-        rtt >= Duration::from_millis(76) && rtt < Duration::from_millis(100),
-        "{rtt:?}"
-    );
+    let mut best = Duration::MAX;
+    for _ in 0..3 {
+        let rtt = ping(&client, link.local_addr(), &payload, Duration::from_secs(1))
+            .await
+            .expect("reply");
+        assert!(rtt >= Duration::from_millis(76), "{rtt:?} < 76 ms");
+        best = best.min(rtt);
+    }
+    assert!(best < Duration::from_millis(130), "{best:?}");
 }
 
 #[test]
