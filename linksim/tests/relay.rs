@@ -209,13 +209,15 @@ async fn delay_gives_round_trip_time() {
     // Changing the configuration at run time takes effect.
     link.set_up(LinkConfig::loopback());
     link.set_down(LinkConfig::new(None, Duration::from_millis(10)));
-    let rtt = ping(&client, link.local_addr(), b"after", Duration::from_secs(1))
-        .await
-        .expect("reply");
-    assert!(
-        rtt >= Duration::from_millis(10) && rtt < Duration::from_millis(40),
-        "{rtt:?}"
-    );
+    let mut best = Duration::MAX;
+    for _ in 0..3 {
+        let rtt = ping(&client, link.local_addr(), b"after", Duration::from_secs(1))
+            .await
+            .expect("reply");
+        assert!(rtt >= Duration::from_millis(10), "{rtt:?}");
+        best = best.min(rtt);
+    }
+    assert!(best < Duration::from_millis(40), "{best:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
