@@ -9,6 +9,10 @@
 //!   latitude/longitude and (face, s, t) (thesis Eq. 5.1, with its erratum).
 //! - [`datum`]: reconstruction on the WGS84 ellipsoid or a sphere (thesis
 //!   Eq. 4.2, with `e²` instead of `e`).
+//! - [`camera`]: the one perspective camera (planet-centred `f64` metres)
+//!   and its orthonormal basis.
+//! - [`horizon`]: horizon-fitted near and far planes (thesis §4.5.4,
+//!   Eq. 4.3, with its gap closed).
 //! - [`block`]: block addressing (face, level, x, y), children, parents and
 //!   neighbours inside a face and across cube edges (thesis §3.2, §4.3.2).
 //! - [`lod`]: the interleaved LOD sample subsets of a block (thesis §3.2,
@@ -23,10 +27,12 @@
 #![warn(missing_docs)]
 
 pub mod block;
+pub mod camera;
 pub mod codec;
 pub mod cube;
 pub mod datum;
 pub mod format;
+pub mod horizon;
 pub mod lod;
 pub mod pipe;
 
