@@ -72,7 +72,8 @@ impl Camera {
             .unwrap_or(DVec3::NEG_Z);
         let mut r = f.cross(self.up);
         let scale = self.up.length();
-        if !(r.is_finite() && r.length() >= 1e-6 * scale.max(1e-300)) || !scale.is_finite() {
+        let usable = r.is_finite() && scale.is_finite() && r.length() >= 1e-6 * scale.max(1e-300);
+        if !usable {
             let alt = if f.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
             r = f.cross(alt);
         }
