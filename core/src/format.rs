@@ -89,6 +89,16 @@ pub enum FormatError {
     /// A payload does not decode.
     #[error("payload: {0}")]
     Codec(#[from] CodecError),
+    /// A declared length exceeds its limit (checked before allocating).
+    #[error("{what} of {len} bytes exceeds the limit of {limit}")]
+    TooLarge {
+        /// What was being read.
+        what: &'static str,
+        /// The declared length.
+        len: u64,
+        /// The limit.
+        limit: u64,
+    },
 }
 
 /// Which of the two linked trees a record belongs to (thesis §4.4.1).
@@ -745,6 +755,15 @@ impl DbWriter {
 
     fn finish_inner(mut self, header: &Header) -> io::Result<u64> {
         let h = header.encode();
+        if h.len() > MAX_HEADER_LEN {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!(
+                    "header of {} bytes exceeds the format's limit of {MAX_HEADER_LEN}",
+                    h.len()
+                ),
+            ));
+        }
         let header_offset = self.pos;
         self.file.write_all(&h)?;
         let file_len = header_offset + h.len() as u64;
@@ -781,6 +800,69 @@ impl DbWriter {
     }
 }
 
+/// The largest header a database file may declare (8 MiB, the same as the
+/// protocol's `MAX_HEADER_LEN`, since the header travels whole in the
+/// Welcome; a server test holds the two equal).
+pub const MAX_HEADER_LEN: usize = 8 * 1024 * 1024;
+
+/// The checked superblock and header of a database file.
+#[derive(Debug, Clone)]
+pub struct ValidatedHead {
+    /// The checked superblock.
+    pub superblock: Superblock,
+    /// The decoded header.
+    pub header: Header,
+    /// The header's bytes as stored (sent to clients in the welcome).
+    pub header_bytes: Vec<u8>,
+}
+
+/// Reads and checks the superblock and header of an open database file of
+/// `len` bytes (its length now): the file must hold a superblock that
+/// places the header inside it, the superblock's length must equal `len`,
+/// the header's declared length must be at most `max_header_len` (checked
+/// before anything is allocated), and the header must decode. The one validation of
+/// a database's head, for `DbFile::open` and the server.
+pub fn read_validated_head(
+    file: &File,
+    len: u64,
+    max_header_len: usize,
+) -> Result<ValidatedHead, FormatError> {
+    if len < SUPERBLOCK_LEN as u64 {
+        return Err(FormatError::Truncated {
+            what: "database file",
+            got: len as usize,
+            need: SUPERBLOCK_LEN,
+        });
+    }
+    let mut sb = [0u8; SUPERBLOCK_LEN];
+    file.read_exact_at(&mut sb, 0)?;
+    let superblock = Superblock::decode(&sb)?;
+    if superblock.file_len != len {
+        return Err(FormatError::Length {
+            what: "database file",
+            stored: superblock.file_len,
+            got: len,
+        });
+    }
+    if superblock.header_len as usize > max_header_len {
+        return Err(FormatError::TooLarge {
+            what: "header",
+            len: u64::from(superblock.header_len),
+            limit: max_header_len as u64,
+        });
+    }
+    // `Superblock::decode` checked that the header lies inside `file_len`,
+    // which is `len`.
+    let mut header_bytes = vec![0u8; superblock.header_len as usize];
+    file.read_exact_at(&mut header_bytes, superblock.header_offset)?;
+    let header = Header::decode(&header_bytes, Some(len))?;
+    Ok(ValidatedHead {
+        superblock,
+        header,
+        header_bytes,
+    })
+}
+
 /// A database file opened for reading with positioned reads.
 pub struct DbFile {
     file: File,
@@ -798,26 +880,11 @@ impl DbFile {
     pub fn open(path: &Path) -> Result<DbFile, FormatError> {
         let file = File::open(path)?;
         let len = file.metadata()?.len();
-        let mut sb = [0u8; SUPERBLOCK_LEN];
-        if len < SUPERBLOCK_LEN as u64 {
-            return Err(FormatError::Truncated {
-                what: "database file",
-                got: len as usize,
-                need: SUPERBLOCK_LEN,
-            });
-        }
-        file.read_exact_at(&mut sb, 0)?;
-        let superblock = Superblock::decode(&sb)?;
-        if superblock.file_len != len {
-            return Err(FormatError::Length {
-                what: "database file",
-                stored: superblock.file_len,
-                got: len,
-            });
-        }
-        let mut header_bytes = vec![0u8; superblock.header_len as usize];
-        file.read_exact_at(&mut header_bytes, superblock.header_offset)?;
-        let header = Header::decode(&header_bytes, Some(len))?;
+        let ValidatedHead {
+            superblock,
+            header,
+            header_bytes,
+        } = read_validated_head(&file, len, MAX_HEADER_LEN)?;
         Ok(DbFile {
             file,
             superblock,
@@ -1016,5 +1083,68 @@ mod tests {
         let all = std::fs::read(&path).unwrap();
         std::fs::write(&path, &all[..all.len() - 3]).unwrap();
         assert!(DbFile::open(&path).is_err());
+    }
+
+    #[test]
+    fn validated_head_names_each_fault() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.planetdb");
+        let mut w = DbWriter::create(&path).unwrap();
+        let rec = encode_record(
+            Tree::Elevation,
+            BlockId::root(Face::NORTH),
+            &[],
+            &Payload::zstd(&[1, 2, 3]),
+        );
+        let (offset, size) = w.append(&rec).unwrap();
+        let mut h = sample_header(false);
+        h.elevation.root_records = [ChildRef {
+            offset,
+            size,
+            error: 0.0,
+            min_elevation: 0.0,
+            max_elevation: 0.0,
+        }; 6];
+        w.finish(&h).unwrap();
+        let good = std::fs::read(&path).unwrap();
+        let len = good.len() as u64;
+        let head = |bytes: &[u8], limit: usize| {
+            std::fs::write(&path, bytes).unwrap();
+            let f = File::open(&path).unwrap();
+            read_validated_head(&f, bytes.len() as u64, limit)
+        };
+        let ok = head(&good, MAX_HEADER_LEN).unwrap();
+        assert_eq!(ok.header, h);
+        assert_eq!(ok.superblock.file_len, len);
+        // Shorter than a superblock.
+        assert!(matches!(
+            head(&good[..10], MAX_HEADER_LEN),
+            Err(FormatError::Truncated { got: 10, .. })
+        ));
+        // Truncated or extended: the superblock's length disagrees.
+        let mut longer = good.clone();
+        longer.extend_from_slice(&[0; 5]);
+        assert!(matches!(
+            head(&longer, MAX_HEADER_LEN),
+            Err(FormatError::Length { stored, got, .. }) if stored == len && got == len + 5
+        ));
+        // A header over the caller's limit is refused before it is read.
+        let hl = ok.superblock.header_len as usize;
+        assert!(matches!(
+            head(&good, hl - 1),
+            Err(FormatError::TooLarge { what: "header", .. })
+        ));
+        // A damaged superblock.
+        let mut bad = good.clone();
+        bad[20] ^= 1;
+        assert!(matches!(
+            head(&bad, MAX_HEADER_LEN),
+            Err(FormatError::Checksum("superblock"))
+        ));
+        // A damaged header.
+        let mut bad = good.clone();
+        let last = bad.len() - 1;
+        bad[last] ^= 0x55;
+        assert!(head(&bad, MAX_HEADER_LEN).is_err());
     }
 }
