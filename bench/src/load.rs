@@ -105,13 +105,13 @@ impl Default for LoadArgs {
 /// One client's path: a built-in trajectory moved to `(lat, lon)`, turned by
 /// `heading`, played from `phase` seconds, cyclically.
 #[derive(Debug, Clone)]
-struct Path {
+pub(crate) struct Path {
     traj: Trajectory,
     phase: f64,
 }
 
 impl Path {
-    fn new(base: &Trajectory, rng: &mut ChaCha8Rng) -> Path {
+    pub(crate) fn new(base: &Trajectory, rng: &mut ChaCha8Rng) -> Path {
         let k0 = base.keyframes[0];
         let lat: f64 = rng.random_range(-60.0..60.0);
         let lon: f64 = rng.random_range(-180.0..180.0);
@@ -156,39 +156,41 @@ fn wrap180(d: f64) -> f64 {
 
 /// Live counters shared by the clients and the monitor.
 #[derive(Default)]
-struct Live {
-    requests: AtomicU64,
-    bytes: AtomicU64,
-    errors: AtomicU64,
-    in_flight: AtomicU64,
+pub(crate) struct Live {
+    pub(crate) requests: AtomicU64,
+    pub(crate) bytes: AtomicU64,
+    pub(crate) errors: AtomicU64,
+    pub(crate) in_flight: AtomicU64,
 }
 
 #[derive(Default)]
-struct ClientResult {
-    lat_us: Vec<u32>,
-    bytes: u64,
-    errors: u64,
-    first_error: Option<String>,
-    frames: u64,
-    sent: u64,
-    cancelled: u64,
-    refines: u64,
-    held: bool,
-    max_frame_us: u64,
-    frame_us_total: u64,
+pub(crate) struct ClientResult {
+    pub(crate) lat_us: Vec<u32>,
+    pub(crate) bytes: u64,
+    pub(crate) errors: u64,
+    pub(crate) first_error: Option<String>,
+    pub(crate) frames: u64,
+    pub(crate) sent: u64,
+    pub(crate) cancelled: u64,
+    pub(crate) refines: u64,
+    pub(crate) held: bool,
+    pub(crate) max_frame_us: u64,
+    pub(crate) frame_us_total: u64,
 }
 
-struct ClientSpec {
-    conn: Connection,
-    header: Header,
-    path: Path,
-    cfg: ClientConfig,
-    fov: f64,
-    aspect: f64,
-    viewport: f64,
+pub(crate) struct ClientSpec {
+    pub(crate) conn: Connection,
+    pub(crate) header: Header,
+    pub(crate) path: Path,
+    pub(crate) cfg: ClientConfig,
+    pub(crate) fov: f64,
+    pub(crate) aspect: f64,
+    pub(crate) viewport: f64,
 }
 
-async fn fly(
+/// One client's flight on `spec.conn` from `start` to `end` (shared by
+/// `load` and `soak`).
+pub(crate) async fn fly(
     spec: ClientSpec,
     start: tokio::time::Instant,
     end: tokio::time::Instant,

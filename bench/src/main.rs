@@ -10,6 +10,8 @@
 //! - `load`: 1000 lightweight streaming clients against one server.
 //! - `hostile`: hostile clients of each kind (zero window, half-open, bad
 //!   token) against one server while a good client streams.
+//! - `soak`: hours of steady streaming with connection churn; the server's
+//!   memory and descriptors must stay flat, with no error.
 
 mod flight;
 mod hostile;
@@ -17,6 +19,7 @@ mod load;
 mod plot;
 mod resident;
 mod server_bench;
+mod soak;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -53,6 +56,9 @@ enum Command {
     /// server while a good client streams: its throughput and connect time,
     /// the server's memory per hostile connection.
     Hostile(hostile::HostileArgs),
+    /// Hours of steady streaming with connection churn: the server's memory
+    /// and descriptors must stay flat, with no error.
+    Soak(soak::SoakArgs),
 }
 
 fn main() -> Result<()> {
@@ -64,6 +70,7 @@ fn main() -> Result<()> {
         Command::Server(a) => server_bench::run(a),
         Command::Load(a) => load::run(a),
         Command::Hostile(a) => hostile::run(a),
+        Command::Soak(a) => soak::run(a),
     }
 }
 

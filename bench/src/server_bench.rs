@@ -191,16 +191,21 @@ impl Default for ServerArgs {
 
 // ---------------------------------------------------------------- shared helpers
 
-/// The default database: the default procedural planet, built once.
+/// The default database: the default procedural planet, built once, and
+/// again when the file there does not open (another format version).
 pub fn default_db() -> Result<PathBuf> {
     let path = std::env::temp_dir().join("planet-bench-default.planetdb");
-    if path.is_file() {
-        return Ok(path);
+    match planet_core::format::DbFile::open(&path) {
+        Ok(_) => return Ok(path),
+        Err(e) if path.exists() => eprintln!(
+            "{} does not open ({e}): rebuilding the default procedural planet",
+            path.display()
+        ),
+        Err(_) => eprintln!(
+            "building the default procedural planet to {}",
+            path.display()
+        ),
     }
-    eprintln!(
-        "building the default procedural planet to {}",
-        path.display()
-    );
     let tmp = path.with_extension(format!("tmp{}", std::process::id()));
     planet_preprocess::build_procedural(&planet_preprocess::default_procedural_options(), &tmp)
         .map_err(|e| anyhow!("building the default database: {e}"))?;
