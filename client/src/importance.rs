@@ -1,7 +1,7 @@
 //! Importance of blocks, LOD selection, triggers and screen-space error.
 //!
-//! Implements thesis Eq. 3.2–3.4 (§3.6.2–3.6.4) specialised to 3D (§4.2.4,
-//! thesis-notes §6.2, §6.4, §6.5):
+//! Implements thesis Eq. 3.2–3.4 (§3.6.2–3.6.4) specialised to 3D (§4.2.4;
+//! see docs/REFERENCES.md):
 //!
 //! ```text
 //! distance   = |eye − centre of block bounding box| − blockRadius

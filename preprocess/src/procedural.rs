@@ -15,7 +15,7 @@
 //! expression order), so a sample's value does not depend on the level of
 //! the leaf that computes it. A sample on a block edge depends only on
 //! lattice points whose directions are bit-identical from both blocks
-//! (thesis-notes §9.4), so shared edge samples agree exactly, across faces
+//! (Thesis Table 4.1, docs/REFERENCES.md), so shared edge samples agree exactly, across faces
 //! and across a leaf/split-block boundary. The three octaves below the base
 //! level's sample rate and every octave finer than the base lattice can
 //! carry, down to the deepest level's ~2-sample frequency, are evaluated per

@@ -1,5 +1,5 @@
 //! Raster sources re-projected onto cube-face blocks (thesis §5.2, Eq. 5.1,
-//! Alg. 5.1; thesis-notes §9.7).
+//! Alg. 5.1; see docs/REFERENCES.md).
 //!
 //! Instead of re-projecting whole face maps to disk first (Alg. 5.1), each
 //! leaf block samples its grid straight from the sources: elevation sample
