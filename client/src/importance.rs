@@ -11,7 +11,7 @@
 //!
 //! `blockRadius` [VAGUE in the thesis] is the footprint radius of
 //! [`crate::visibility::BlockBounds`]. The "large negative constant" for
-//! `distance ≤ 0` [VAGUE] is [`IMPORTANCE_NEAR`] `= −64`; importance is clamped
+//! `distance ≤ 0` (not given by the thesis) is [`IMPORTANCE_NEAR`] `= −64`; importance is clamped
 //! to `[−64, 64]` so it is finite for any input (QF 0, non-finite distances,
 //! eye at the centre of the planet or 1e12 m away).
 //!

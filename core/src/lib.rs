@@ -17,7 +17,7 @@
 //! - [`codec`]: the payload codecs, chosen per tree in the header: the
 //!   legacy lossless ones (predicted elevation residuals, thesis §4.4.4 PTM
 //!   colour), error-bounded elevation and perceptual Haar colour.
-//! - [`format`]: the one-file database: superblock, header and self-describing
+//! - [`format`](mod@format): the one-file database: superblock, header and self-describing
 //!   LOD records (thesis §3.3.2), byte by byte in `docs/FORMAT.md`.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]

@@ -423,7 +423,7 @@ impl<'a> StackReader<'a> {
     /// block), with each layer's pixel
     /// coordinates from [`GeoTiff::pixels_of_grid`] (computed for a layer
     /// only once a point needs it). The pixels around the points a layer
-    /// holds are copied once into a [`Window`]; a point whose 4 pixels are
+    /// holds are copied once into a `Window`; a point whose 4 pixels are
     /// valued there is interpolated from it (valued pixels are neither
     /// voids nor outside a footprint), others pixel by pixel (wrapping,
     /// clamping, void filling): the same values either way.
