@@ -1,7 +1,7 @@
 //! The per-frame client loop: apply finished work, select, request.
 //!
-//! Implements thesis Alg. 3.1 and the threading of §3.5.2 (thesis-notes
-//! §5.5, §6.6), driven by the caller instead of owning threads for the
+//! Implements thesis Alg. 3.1 and the threading of §3.5.2 (see
+//! docs/REFERENCES.md), driven by the caller instead of owning threads for the
 //! network:
 //!
 //! 1. at frame start, apply the refines finished by the decode workers and

@@ -1,7 +1,7 @@
 //! Importance of blocks, LOD selection, triggers and screen-space error.
 //!
-//! Implements thesis Eq. 3.2–3.4 (§3.6.2–3.6.4) specialised to 3D (§4.2.4,
-//! thesis-notes §6.2, §6.4, §6.5):
+//! Implements thesis Eq. 3.2–3.4 (§3.6.2–3.6.4) specialised to 3D (§4.2.4;
+//! see docs/REFERENCES.md):
 //!
 //! ```text
 //! distance   = |eye − centre of block bounding box| − blockRadius
@@ -11,7 +11,7 @@
 //!
 //! `blockRadius` [VAGUE in the thesis] is the footprint radius of
 //! [`crate::visibility::BlockBounds`]. The "large negative constant" for
-//! `distance ≤ 0` [VAGUE] is [`IMPORTANCE_NEAR`] `= −64`; importance is clamped
+//! `distance ≤ 0` (not given by the thesis) is [`IMPORTANCE_NEAR`] `= −64`; importance is clamped
 //! to `[−64, 64]` so it is finite for any input (QF 0, non-finite distances,
 //! eye at the centre of the planet or 1e12 m away).
 //!

@@ -2,7 +2,7 @@
 //!
 //! Beyond the thesis, which fixes the number of pending requests (§3.5.1:
 //! "we fix the number of pending server requests to a maximum", size
-//! [VAGUE], thesis-notes §4), and beyond every peer (peers.md §2: fixed
+//! not given, see docs/REFERENCES.md), and beyond every peer (all fixed:
 //! 50/18/20/6/5). Too few requests in flight leave the link idle between
 //! round trips; too many queue in the network, where they can no longer be
 //! re-ranked or dropped when the view moves, and each answer arrives later.

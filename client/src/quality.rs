@@ -1,9 +1,9 @@
 //! The quality-factor controller.
 //!
-//! Thesis §4.2.4 and §3.7 (thesis-notes §6.3): the quality factor `QF` is
+//! Thesis §4.2.4 and §3.7 (see docs/REFERENCES.md): the quality factor `QF` is
 //! proportional to the number of rendered triangles; it changes "in
 //! proportion" only when the frame rate leaves a tolerance band around the
-//! target. The law, band and rate are [VAGUE] in the thesis; ours:
+//! target. The law, band and rate are not given in the thesis; ours:
 //!
 //! ```text
 //! ratio = target / measured           (triangle budget)

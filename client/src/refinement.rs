@@ -1,6 +1,6 @@
 //! What to refine, and in which order: the client's policy.
 //!
-//! The thesis (§3.6.2–3.6.4, §4.2.4; thesis-notes §6) refines by
+//! The thesis (§3.6.2–3.6.4, §4.2.4; docs/REFERENCES.md) refines by
 //! *importance*, the projected sample spacing scaled by a quality factor
 //! (Eq. 3.2–3.4, [`crate::importance`]), and ranks requests by the same
 //! number. It ignores the geometric error that every child reference of the
@@ -12,7 +12,7 @@
 //!
 //! The default policy, [`Policy::Ours`], refines by **screen-space error**
 //! against a pixel tolerance (`--max-sse`, default 1 px), as the field does
-//! (Cesium's `maximumScreenSpaceError`, peers.md §1), with our per-record
+//! (Cesium's `maximumScreenSpaceError`, docs/REFERENCES.md), with our per-record
 //! errors:
 //!
 //! ```text
@@ -54,7 +54,7 @@
 //! - [`Policy::Thesis`]: Eq. 3.2–3.4 as the thesis gives them, with its
 //!   fixed queue and QF law ([`crate::quality`]).
 //! - [`Policy::Cesium`]: CesiumJS terrain streaming with its defaults
-//!   (peers.md §1): SSE refinement at `maximumScreenSpaceError` (set to our
+//!   (docs/REFERENCES.md): SSE refinement at `maximumScreenSpaceError` (set to our
 //!   tolerance), load priority `(1 − cos θ)·distance` where θ is the angle
 //!   between the view direction and the tile's centre and `distance` the
 //!   distance to its bounds (`GlobeSurfaceTileProvider.computeTileLoadPriority`;

@@ -1,11 +1,11 @@
 //! Fixed-size priority request queues with per-frame resubmission.
 //!
-//! Implements thesis §3.5.2 (thesis-notes §4): every frame the selection
+//! Implements thesis §3.5.2 (see docs/REFERENCES.md): every frame the selection
 //! rebuilds the list of triggered requests; the highest-importance ones fill
 //! the free slots of a fixed-size queue of requests in flight; the others are
 //! discarded and will be triggered again, with fresh importance, next frame.
 //!
-//! Beyond the thesis ([VAGUE] there, thesis-notes §4 "Cancellation"):
+//! Beyond the thesis (not given there, docs/REFERENCES.md):
 //! - a request already in flight is never sent twice (keyed by tree+block);
 //! - an in-flight request is **cancelled** when its block is gone or no
 //!   longer needs that LOD ([`RequestQueue::retain_relevant`]), when it has

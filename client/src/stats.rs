@@ -1,6 +1,6 @@
 //! Per-frame and cumulative client statistics.
 //!
-//! The measures of thesis §3.7 and §4.6 (thesis-notes §10–11): rendered
+//! The measures of thesis §3.7 and §4.6 (see docs/REFERENCES.md): rendered
 //! blocks and triangles, quality factor, requests in flight / sent /
 //! cancelled, bytes received and dropped, and the "relevant data" ratio
 //! (§3.7: "more than 95 % of received data are immediately used for

@@ -1,7 +1,7 @@
 //! The client's partial tree of blocks: two linked trees, split, merge,
 //! refine, neighbours and constraints.
 //!
-//! Implements thesis §3.4 (thesis-notes §5): an incomplete, unbalanced
+//! Implements thesis §3.4 (see docs/REFERENCES.md): an incomplete, unbalanced
 //! quadtree per cube face, for each of the two linked trees (elevation, and
 //! colour when the header has one, §4.4.1). Nodes live in an arena keyed by
 //! [`BlockId`]; only leaves own samples, in one grid at the resolution of

@@ -2,7 +2,7 @@
 //!
 //! Beyond the thesis (§3.5.2 ranks requests by the *current* view; the
 //! papers' "relevant data" is the share of received bytes used for rendering
-//! on arrival, thesis-notes §4). A response is applied a round trip, its
+//! on arrival, docs/REFERENCES.md). A response is applied a round trip, its
 //! transfer time and one decode after the request: at 1 Mbit/s with a queue
 //! of 16 that is half a second, in which a descending or flying camera leaves
 //! behind the blocks at the border of its view. Those answers arrive for

@@ -2,7 +2,7 @@
 //! occlusion of blocks.
 //!
 //! Implements thesis §3.6.1 / §4.2.1 (frustum against 3D bounding boxes) and
-//! §4.5.4 Eq. 4.3 (thesis-notes §9.6, seed 000 Eq. 1–2): the far plane is
+//! §4.5.4 Eq. 4.3 (Planetary paper §6.4 Eq. 1–2, docs/REFERENCES.md): the far plane is
 //! fitted to the horizon of the planet, so blocks behind the horizon fail the
 //! ordinary frustum test. Beyond the thesis:
 //!

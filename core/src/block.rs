@@ -6,7 +6,7 @@
 //! square `[x, x+1]/2^L × [y, y+1]/2^L` of its face.
 //!
 //! Neighbours across a cube edge follow thesis Table 4.1 (reconstructed in
-//! thesis-notes §9.4). Edge names are the thesis's: Left is `u = −1`, Top is
+//! docs/REFERENCES.md). Edge names are the thesis's: Left is `u = −1`, Top is
 //! `v = +1`, Right is `u = +1`, Bottom is `v = −1`. Because the axes of two
 //! faces point the same way along their shared edge, the coordinate along the
 //! edge (`y` for Left/Right, `x` for Top/Bottom) is the same on both sides.
@@ -56,7 +56,7 @@ impl Edge {
 }
 
 /// The neighbouring face across `edge` of `face`, and the neighbour's edge
-/// that touches it (thesis Table 4.1 as reconstructed in thesis-notes §9.4).
+/// that touches it (Thesis Table 4.1 as reconstructed in docs/REFERENCES.md).
 pub fn face_neighbour(face: Face, edge: Edge) -> (Face, Edge) {
     let (offset, e) = if face.is_even() {
         match edge {

@@ -1,7 +1,7 @@
 //! The cube faces and the adjusted gnomonic (equal-angle) sampling.
 //!
-//! Implements thesis §4.5.1–4.5.3 and §5.2 (seed 003), with the face frames of
-//! thesis Table 4.1 as reconstructed in `thesis-notes.md` §9.4:
+//! Implements thesis §4.5.1–4.5.3 and §5.2 with the face frames of
+//! Thesis Table 4.1 as reconstructed in docs/REFERENCES.md:
 //!
 //! | face | w (outward) | u axis | v axis | centre            |
 //! |------|-------------|--------|--------|-------------------|

@@ -1,6 +1,6 @@
 //! Reconstruction of surface points on an ellipsoid of revolution or a sphere.
 //!
-//! Implements thesis Eq. 4.2 (seed 003 §4.5.1) with its erratum fixed: the
+//! Implements thesis Eq. 4.2 (Thesis §4.5.1; docs/REFERENCES.md) with its erratum fixed: the
 //! thesis's `ecc` is the *first eccentricity squared* `e²` (WGS84:
 //! 0.00669437999014), not `e`:
 //!
@@ -10,7 +10,7 @@
 //! ```
 //!
 //! where `(u, v, w)` is the unit cube direction, used as the geodetic normal
-//! (thesis-notes §9.3), and `h` the height above the ellipsoid in metres.
+//! (docs/REFERENCES.md), and `h` the height above the ellipsoid in metres.
 //! These are the standard geodetic-to-ECEF formulas; tests compare them with
 //! geographiclib to 0.1 mm.
 

@@ -1,7 +1,7 @@
 //! The one-file database: superblock, header and self-describing LOD records.
 //!
-//! Implements the explicit layout of thesis §3.3.2 (seed 003; thesis-notes
-//! §2.3): every stored LOD is a record that carries the file offset and size
+//! Implements the explicit layout of thesis §3.3.2 (see
+//! docs/REFERENCES.md): every stored LOD is a record that carries the file offset and size
 //! of the next LODs (with `subDepth = 1`, the four children's records), the
 //! roots' first LODs are in the header, no sample is stored twice, and the
 //! file is written linearly bottom-up. Beyond the thesis, each record starts

@@ -1,16 +1,16 @@
 //! LOD sample subsets inside a block, and the data copies of split and merge.
 //!
-//! Implements thesis §3.2 and §3.4.1 (seed 003; seed 001 §4) with
+//! Implements thesis §3.2 and §3.4.1 (Generic paper §4; docs/REFERENCES.md) with
 //! `subDepth = 1`: every block has two LODs. LOD 1 (the first) is a subset of
 //! LOD 0 (the full grid); the block's LOD 1 is exactly its parent's samples
-//! over its quadrant, so it is never stored (thesis-notes §1.5), and the one
+//! over its quadrant, so it is never stored (Thesis §3.2.2), and the one
 //! stored record of a block carries only the samples LOD 0 adds, interleaved
 //! between the existing ones.
 //!
 //! - **Elevation** grids are odd: `(W+1)²` samples, the last row and column
 //!   shared with the next block (thesis §3.2, §4.2.1). LOD 1 is the samples
 //!   with even `i` and even `j`, `(W/2+1)²` of them, point-sampled
-//!   (thesis-notes §1.2). The block width `W` must be even.
+//!   (Thesis §3.2, docs/REFERENCES.md). The block width `W` must be even.
 //! - **Colour** grids are even: `W²` texels with centres at `(i + ½)/W`. LOD 1
 //!   is a separate `(W/2)²` grid, the floor of the mean of each 2×2 cell
 //!   (filtered, not point-sampled: thesis §4.4.4), and LOD 0 is reconstructed
@@ -43,7 +43,7 @@ pub fn elevation_new_samples(w: usize) -> usize {
 
 /// The largest tree-level difference `x` between neighbouring blocks that
 /// edge strips can stitch: the largest `x` with `w` divisible by `2^(x+1)`
-/// (thesis §4.3.3; thesis-notes §7.6 table).
+/// (Thesis §4.3.3; the table in docs/REFERENCES.md).
 pub fn max_level_difference(w: usize) -> u32 {
     if w == 0 {
         return 0;
@@ -149,7 +149,7 @@ mod tests {
 
     #[test]
     fn level_difference_table() {
-        // thesis-notes §7.6
+        // Thesis §4.3.3, the table in docs/REFERENCES.md
         for (w, x) in [
             (12, 1),
             (52, 1),

@@ -1,5 +1,5 @@
-//! The database build: thesis §5.3, Alg. 5.2 (BlockSubdiv; thesis-notes
-//! §9.8), bottom-up, depth-first, written linearly.
+//! The database build: thesis §5.3, Alg. 5.2 (BlockSubdiv; see
+//! docs/REFERENCES.md), bottom-up, depth-first, written linearly.
 //!
 //! Per block: a leaf's full grid comes from the source at the leaf's
 //! resolution; an inner block's full grid is gathered from its four

@@ -1,7 +1,7 @@
 //! Reading a built database back: `verify`, `inspect` and `sample`.
 //!
-//! Verification follows the explicit layout of thesis §3.3.2 (thesis-notes
-//! §2.3): records are found only through the `(offset, size)` lists, starting
+//! Verification follows the explicit layout of thesis §3.3.2 (see
+//! docs/REFERENCES.md): records are found only through the `(offset, size)` lists, starting
 //! from the header's roots. `verify` (1) opens the superblock and header
 //! (both checksummed), (2) scans the record area linearly from byte 64, so the
 //! records must tile `[64, header_offset)` with no gap or overlap and every

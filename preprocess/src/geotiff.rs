@@ -1,7 +1,7 @@
 //! Rasters (GeoTIFF in any CRS [`crate::crs`] reads, SRTM `.hgt`) read by
 //! strips, tiles or row blocks on demand.
 //!
-//! The input side of thesis §5.1–5.2 (thesis-notes §9.7): the thesis reads a
+//! The input side of thesis §5.1–5.2 (see docs/REFERENCES.md): the thesis reads a
 //! "dually tiled map format" whose rectangular windows are loaded on demand;
 //! here the TIFF's own strips/tiles are the unit, decoded lazily and kept in a
 //! bounded LRU cache (`cache_bytes`), so a raster larger than the memory bound

@@ -12,7 +12,7 @@
 //! - [`source`]: the elevation stack (finest covering source, void filling)
 //!   and colour source, re-projected per block (thesis §5.2, Eq. 5.1).
 //! - [`plan`]: the tree shape, depth by region, graded (thesis §4.3.3).
-//! - [`build`]: the bottom-up, depth-first, linear build (thesis Alg. 5.2).
+//! - [`build`](mod@build): the bottom-up, depth-first, linear build (thesis Alg. 5.2).
 //! - [`procedural`]: the procedural planet and [`build_procedural`].
 //! - [`builtin`]: the built-in planet of `planet-view --local` and its named
 //!   places.

@@ -6,7 +6,7 @@
 //! covering it (capped by `max_level`). The tree is then *graded* so that
 //! neighbouring leaves, across cube edges too, differ by at most
 //! [`MAX_GRADE`] levels, within the `max_level_difference(64) = 5` the edge
-//! strips can stitch (thesis §4.3.3, thesis-notes §7.6), with a margin of 1.
+//! strips can stitch (Thesis §4.3.3, docs/REFERENCES.md), with a margin of 1.
 //!
 //! The colour tree is the elevation tree truncated at the colour source's
 //! level (linked trees, thesis §4.4.1): a truncation at a uniform level keeps

@@ -15,12 +15,12 @@
 //! expression order), so a sample's value does not depend on the level of
 //! the leaf that computes it. A sample on a block edge depends only on
 //! lattice points whose directions are bit-identical from both blocks
-//! (thesis-notes §9.4), so shared edge samples agree exactly, across faces
+//! (Thesis Table 4.1, docs/REFERENCES.md), so shared edge samples agree exactly, across faces
 //! and across a leaf/split-block boundary. The three octaves below the base
 //! level's sample rate and every octave finer than the base lattice can
 //! carry, down to the deepest level's ~2-sample frequency, are evaluated per
 //! sample, a row at a time, in f32 within each noise cell
-//! ([`DetailOctave`]), again a function of the sample's direction alone.
+//! (`DetailOctave`), again a function of the sample's direction alone.
 //!
 //! The octaves finer than the base planet's own (present only with detail
 //! regions) are *rough*: their amplitude falls by [`ROUGH_RATIO`] per octave
@@ -30,7 +30,7 @@
 //! uniform planet's octave list ends at its own leaf level, so its values are
 //! unchanged by them. Colour is a function of altitude, latitude and a
 //! moisture field: ocean blues, beaches, greens, deserts, rock, snow caps and
-//! polar ice ([`palette`], f32, branch-free).
+//! polar ice (`palette`, f32, branch-free).
 
 use crate::build::{build, BuildOptions, BuildStats, GridSource, CW, EW};
 use crate::error::BuildError;

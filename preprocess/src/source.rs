@@ -1,5 +1,5 @@
 //! Raster sources re-projected onto cube-face blocks (thesis §5.2, Eq. 5.1,
-//! Alg. 5.1; thesis-notes §9.7).
+//! Alg. 5.1; see docs/REFERENCES.md).
 //!
 //! Instead of re-projecting whole face maps to disk first (Alg. 5.1), each
 //! leaf block samples its grid straight from the sources: elevation sample
@@ -423,7 +423,7 @@ impl<'a> StackReader<'a> {
     /// block), with each layer's pixel
     /// coordinates from [`GeoTiff::pixels_of_grid`] (computed for a layer
     /// only once a point needs it). The pixels around the points a layer
-    /// holds are copied once into a [`Window`]; a point whose 4 pixels are
+    /// holds are copied once into a `Window`; a point whose 4 pixels are
     /// valued there is interpolated from it (valued pixels are neither
     /// voids nor outside a footprint), others pixel by pixel (wrapping,
     /// clamping, void filling): the same values either way.

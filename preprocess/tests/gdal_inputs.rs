@@ -5,7 +5,7 @@
 //! PROJ's `cs2cs` (NGA's 15′ grid). These tests need gdal-bin and proj-bin
 //! (`.ci/run` installs them) and FAIL, saying so, where they are missing;
 //! like the other real-data tests they skip with a note where ../shared/data
-//! is absent.
+//! is absent (and fail under `PLANET_CI=1`, `common::skip_or_fail`).
 //!
 //! Agreement bound for re-projected data, derived: the database value at a
 //! point P is the bilinear interpolation of the 4 samples at the corners of
@@ -23,6 +23,8 @@
 //! (diagonal ≤ 110 m): R = 108 + 127 + 220 ≈ 455 m; the test uses 500 m.
 //! The re-projection itself (where a lat/lon falls in the projected raster)
 //! is compared with PROJ's `gdaltransform` to 10⁻⁴ pixel (9 mm).
+
+mod common;
 
 use planet_preprocess::db::Sampler;
 use planet_preprocess::geoid::{Egm96Grid, VerticalDatum};
@@ -134,7 +136,7 @@ fn cli_sample(db: &Path, lat: f64, lon: f64) -> (f64, f64) {
 #[test]
 fn utm_and_polar_stereographic_tiles_build_and_agree_with_the_source() {
     let Some(rainier) = rainier() else {
-        eprintln!("note: ../shared/data not found, test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -253,7 +255,7 @@ fn utm_and_polar_stereographic_tiles_build_and_agree_with_the_source() {
 #[test]
 fn srtm_hgt_reads_like_its_geotiff_and_converts_egm96() {
     let Some(rainier) = rainier() else {
-        eprintln!("note: ../shared/data not found, test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -413,7 +415,7 @@ fn egm96_agrees_with_proj_cs2cs_at_1000_points_within_5_cm() {
 #[test]
 fn moon_sphere_from_gdal_keys_colour_alone_and_mixed_bodies() {
     let Some(rainier) = rainier() else {
-        eprintln!("note: ../shared/data not found, test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -521,7 +523,7 @@ fn moon_sphere_from_gdal_keys_colour_alone_and_mixed_bodies() {
 #[test]
 fn projection_families_map_like_proj() {
     let Some(rainier) = rainier() else {
-        eprintln!("note: ../shared/data not found, test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -659,7 +661,7 @@ fn a_directory_of_many_tiles_builds_like_the_whole_tile() {
     use planet_preprocess::geotiff::MAX_IDLE_DECODERS;
     use planet_preprocess::source::{elevation_sample_lat_lon, ELEVATION_WIDTH};
     let Some(rainier) = rainier() else {
-        eprintln!("note: ../shared/data not found, test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let etopo = rainier.with_file_name("earth_etopo5_30arcmin.tif");
@@ -818,7 +820,7 @@ fn cog_overviews_serve_coarser_trees() {
     use planet_preprocess::build::GridSource;
     use planet_preprocess::source::ELEVATION_WIDTH;
     let Some(rainier) = rainier() else {
-        eprintln!("note: ../shared/data not found, test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let dir = tempfile::tempdir().unwrap();

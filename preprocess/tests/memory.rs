@@ -1,6 +1,8 @@
 //! `--max-memory` bounds the whole build: the peak resident set (VmHWM,
 //! Linux) of a `planet-build` child process stays under the bound.
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -36,7 +38,7 @@ fn procedural_build_stays_under_max_memory() {
         "--out",
         out.to_str().unwrap(),
     ]) else {
-        eprintln!("note: no /proc/self/status, memory test skipped");
+        common::skip_or_fail("no /proc/self/status");
         return;
     };
     eprintln!("procedural levels 4: peak {kib} KiB, bound {bound_mib} MiB");
@@ -50,7 +52,7 @@ fn procedural_build_stays_under_max_memory() {
 fn raster_build_stays_under_max_memory() {
     let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
     if !d.join("earth_etopo5_30arcmin.tif").exists() {
-        eprintln!("note: ../shared/data not found, raster memory test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -78,7 +80,7 @@ fn raster_build_stays_under_max_memory() {
         "--out",
         out.to_str().unwrap(),
     ]) else {
-        eprintln!("note: no /proc/self/status, memory test skipped");
+        common::skip_or_fail("no /proc/self/status");
         return;
     };
     // --max-memory bounds the raster caches and the in-flight grids; the

@@ -1,5 +1,6 @@
 //! Real data (../shared/data): ETOPO5 + Blue Marble + Rainier and Everest
-//! SRTM insets. Skipped with a note when the folder is absent.
+//! SRTM insets. Skipped with a note when the folder is absent (a failure under
+//! `PLANET_CI=1`, `common::skip_or_fail`).
 //!
 //! Agreement bound, derived: the database value at a point P is the bilinear
 //! interpolation of the 4 samples at the corners of the leaf cell holding P,
@@ -9,6 +10,8 @@
 //! [min, max] of the source pixels supporting P and the 4 corners. Hence
 //! |db − src| ≤ (max − min of those pixels) + 0.5 m: the local relief within
 //! about one source cell. Points whose support holds a void are excepted.
+
+mod common;
 
 use planet_core::{BlockId, Edge};
 use planet_preprocess::db::{verify, Sampler};
@@ -27,7 +30,7 @@ fn data_dir() -> Option<PathBuf> {
 #[test]
 fn real_planet_with_insets() {
     let Some(d) = data_dir() else {
-        eprintln!("note: ../shared/data not found, real-data test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let etopo = d.join("earth_etopo5_30arcmin.tif");
@@ -183,7 +186,7 @@ fn real_planet_with_insets() {
 #[test]
 fn rainier_voids_follow_surroundings() {
     let Some(d) = data_dir() else {
-        eprintln!("note: ../shared/data not found, real-data test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let etopo = d.join("earth_etopo5_30arcmin.tif");
@@ -273,7 +276,7 @@ fn rainier_voids_follow_surroundings() {
 #[test]
 fn real_codecs_meet_their_bounds() {
     let Some(d) = data_dir() else {
-        eprintln!("note: ../shared/data not found, real-data codec test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let etopo = d.join("earth_etopo5_30arcmin.tif");
@@ -313,7 +316,7 @@ fn block_grids_equal_point_samples() {
     use planet_preprocess::build::GridSource;
     use planet_preprocess::source::{quantise, ELEVATION_WIDTH};
     let Some(d) = data_dir() else {
-        eprintln!("note: ../shared/data not found, real-data test skipped");
+        common::skip_or_fail("../shared/data not found");
         return;
     };
     let etopo = d.join("earth_etopo5_30arcmin.tif");

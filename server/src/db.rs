@@ -144,6 +144,7 @@ impl MappedDb {
     }
 
     /// Opens and validates `path`, reading records as `mode` says.
+    #[allow(unsafe_code)] // the read-only memory map below (SAFETY comment there)
     pub fn open_with(name: &str, path: &Path, mode: StorageMode) -> Result<MappedDb, DbError> {
         let io = |source| DbError::Io {
             name: name.to_string(),

@@ -124,7 +124,7 @@ const MAX_KEYS: usize = 16_384;
 
 /// One small bucket per client IP: `capacity` events per minute, with a
 /// burst of `capacity` (failed hellos, `max_failed_hellos_per_minute`).
-/// Memory is bounded: past [`MAX_KEYS`] addresses, full buckets are
+/// Memory is bounded: past `MAX_KEYS` addresses, full buckets are
 /// forgotten, and if none is full the oldest half is.
 #[derive(Debug)]
 pub struct KeyedBuckets {

@@ -1,5 +1,5 @@
-//! Camera-relative vertex positions in f32 with one rounding (thesis §4.5.5,
-//! thesis-notes §9.5: a local frame per block plus a viewpoint-centred one).
+//! Camera-relative vertex positions in f32 with one rounding (Thesis §4.5.5,
+//! see docs/REFERENCES.md: a local frame per block plus a viewpoint-centred one).
 //!
 //! The thesis renders block-relative f32 vertices and notes 0.5–1 m of error
 //! for a global f32 frame and 3 mm for its fixed-point proposal. Adding an

@@ -1,5 +1,5 @@
-//! Horizon-fitted near and far planes (thesis §4.5.4, Eq. 4.3; thesis-notes
-//! §9.6), computed in f64 without cancellation.
+//! Horizon-fitted near and far planes (Thesis §4.5.4, Eq. 4.3; see
+//! docs/REFERENCES.md), computed in f64 without cancellation.
 //!
 //! In the plane through the planet centre `O`, the eye `V` and the view
 //! direction: `‖OT‖` is the minimum planet radius, `‖OM‖` the maximum, `α`

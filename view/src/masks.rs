@@ -1,6 +1,6 @@
 //! Index masks shared by all blocks: one interior mask per LOD plus the edge
 //! strip masks that stitch a block to a coarser neighbour (thesis §4.2.2,
-//! §4.3.1; seed 000 §5.1).
+//! §4.3.1; Planetary paper §5.1).
 //!
 //! A block's vertex array is its full `(W+1)²` elevation grid, row-major with
 //! `i` along `u` and `j` along `v` (vertex `j·(W+1) + i`). LOD `l` uses the

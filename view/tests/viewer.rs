@@ -2,7 +2,10 @@
 //! command (CSV, image error against the complete database) and the
 //! interactive window under Xvfb (screenshot). Both stream from an
 //! in-process server over real QUIC. They print a note and pass when no
-//! graphics adapter (or no Xvfb) exists.
+//! graphics adapter (or no Xvfb) exists, and fail instead under `PLANET_CI=1`
+//! (`common::skip_or_fail`).
+
+mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -128,7 +131,7 @@ fn render_command_writes_frames_and_the_error_falls_as_the_stream_converges() {
     let stdout = String::from_utf8_lossy(&o.stdout);
     eprintln!("{stdout}\n{stderr}");
     if !o.status.success() && no_adapter(&stderr) {
-        eprintln!("NOTE: skipping, no graphics adapter");
+        common::skip_or_fail("no graphics adapter");
         return;
     }
     assert!(o.status.success(), "render failed");
@@ -224,7 +227,7 @@ fn read_png(path: &Path) -> (u32, u32, Vec<u8>) {
 #[test]
 fn window_under_xvfb_shows_the_planet() {
     let Some(xvfb) = which("Xvfb") else {
-        eprintln!("NOTE: skipping, Xvfb is not installed");
+        common::skip_or_fail("Xvfb is not installed");
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -232,7 +235,7 @@ fn window_under_xvfb_shows_the_planet() {
     // and uses it as it is the second time.
     let cache = dir.path().join("cache");
     let Some((_x, n)) = start_xvfb(&xvfb) else {
-        eprintln!("NOTE: skipping, Xvfb did not start");
+        common::skip_or_fail("Xvfb did not start");
         return;
     };
     let shot = dir.path().join("shot.png");
@@ -265,7 +268,7 @@ fn window_under_xvfb_shows_the_planet() {
             || stderr.contains("requesting the device")
             || stderr.contains("creating the surface"))
     {
-        eprintln!("NOTE: skipping, no Vulkan/GL adapter for the window");
+        common::skip_or_fail("no Vulkan/GL adapter for the window");
         return;
     }
     assert!(ok, "planet-view failed");

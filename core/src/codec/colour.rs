@@ -28,7 +28,7 @@
 //!
 //! Raw layout: one byte `h` (the step shift), then 9 planes of `(W/2)²`
 //! zig-zagged quantisation indices (Y H, V, D, then Co, then Cg; cells
-//! row-major) as one [`super::SymbolWriter`] stream, then zstd.
+//! row-major) as one `SymbolWriter` stream, then zstd.
 
 use super::{unzigzag32, zigzag32, CodecError, SymbolReader, SymbolWriter};
 use crate::lod::Rgb;

@@ -5,7 +5,7 @@
 //! (`k = 0`: exact). The record carries the indices of the samples LOD 0 adds
 //! to LOD 1 (thesis §3.3.2, the interleaved LODs of thesis §3.2) as residuals
 //! against a prediction made from the indices the decoder already has, in
-//! two passes ([`predict`]): edge midpoints from LOD 1 (cubic), then cell
+//! two passes (`predict`): edge midpoints from LOD 1 (cubic), then cell
 //! centres from the four decoded midpoints around them.
 //!
 //! Because the quantisation is pointwise, the index of a LOD 1 sample is the
@@ -23,7 +23,7 @@
 //! neighbours' difference, 8 classes): per record and context one byte, the
 //! scale `σ = round(8·log2(1 + mean z))`, selects a geometric distribution
 //! of mean `2^(σ/8) − 1` over `z`, summed into buckets and quantised to 12
-//! bits (a compact table decoder model, [`super::model`]; all 256 are built
+//! bits (a compact table decoder model, `codec::model`; all 256 are built
 //! once per process, when first used).
 //! Measured on the real data's residuals (docs/BENCHMARKS.md "Bytes per
 //! sample"), this is 8–12 % under zstd -9 of the same residual bytes and

@@ -10,7 +10,7 @@
 //! Wrapping arithmetic makes the code exactly invertible for any `i16`; the
 //! high plane is almost all zeros on real terrain, which lz4 then removes.
 //!
-//! **Colour** (thesis §4.4.4 PTM, with the scheme derived in thesis-notes §8).
+//! **Colour** (Thesis §4.4.4 PTM, with the scheme derived in docs/REFERENCES.md).
 //! LOD 1 is the floor of the mean of each 2×2 cell of LOD 0. The record stores,
 //! per cell and channel, three of the four samples as wrapping byte deltas
 //! against the cell's LOD 1 value, and the remainder `r = sum − 4·mean` in two
