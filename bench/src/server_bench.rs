@@ -542,7 +542,7 @@ pub fn default_server_bin() -> Result<PathBuf> {
         }
     }
     bail!(
-        "planet-server binary not found next to {}: run `cargo build --release -p planet-server` \
+        "planet-server binary not found next to {}: run `cargo build --release -p planet-server-bin` \
          or pass --server-bin (or --server in-process)",
         exe.display()
     )

@@ -5,9 +5,9 @@ mod common;
 
 use planet_core::cube::plane_from_angle;
 use planet_core::{BlockId, Datum, Edge, Face};
-use planet_view::masks::Masks;
-use planet_view::mesh::sample_position;
-use planet_view::{
+use planet_render::masks::Masks;
+use planet_render::mesh::sample_position;
+use planet_render::{
     BlockMesh, BlockTexture, CameraF64, ColourRef, DepthMode, DrawBlock, HeadlessRenderer, Image,
     RenderSettings,
 };
@@ -551,7 +551,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
     };
     let blueness = |p: [u8; 3]| p[2] as f64 - p[1] as f64;
     let mut shot = |cam: &CameraF64, air: bool| {
-        r.renderer.settings.atmosphere = air.then_some(planet_view::render::Atmosphere::EARTH);
+        r.renderer.settings.atmosphere = air.then_some(planet_render::render::Atmosphere::EARTH);
         r.render(cam, &blocks).unwrap()
     };
     // Straight down from 2000 km.

@@ -1,7 +1,7 @@
 //! Shared by the GPU test files: a headless renderer on whatever adapter
 //! wgpu finds (lavapipe in CI), or `None` with a note when there is none.
 
-use planet_view::HeadlessRenderer;
+use planet_render::HeadlessRenderer;
 
 /// A `width × height` headless renderer, with `XDG_RUNTIME_DIR` set to a
 /// private temporary directory when the environment has none (Mesa warns
