@@ -37,7 +37,7 @@ fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
-/// Column-major product, as `render.rs` composes `proj · view`.
+/// Column-major product, as `render/frame.rs` composes `proj · view`.
 fn mat_mul(a: [[f64; 4]; 4], b: [[f64; 4]; 4]) -> [[f64; 4]; 4] {
     let mut out = [[0.0; 4]; 4];
     for col in 0..4 {

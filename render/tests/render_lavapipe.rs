@@ -528,7 +528,7 @@ fn ancestor_texture_is_used_with_its_transform() {
     assert!(px[1] > px[0] && px[1] > px[2], "ramp pixel {px:?}");
 }
 
-/// Aerial perspective (render.rs `Atmosphere`): seen straight down from
+/// Aerial perspective (render/settings.rs `Atmosphere`): seen straight down from
 /// orbit the ground keeps its colour (a thin air column), seen at a grazing
 /// angle it takes the sky's; and every eye of docs/NUMERICS.md (1 m above
 /// the ground, 1000 radii out, inside the planet) gives finite colours.
@@ -644,7 +644,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
             .count();
         assert_eq!(black, 0, "{name}: {black} black pixels");
         // Ground or background by depth: the background's colour is the
-        // sky of the air at the eye (render.rs `Atmosphere::sky`), not one
+        // sky of the air at the eye (render/settings.rs `Atmosphere::sky`), not one
         // colour.
         assert_eq!(
             !img.is_background(SIZE / 2, SIZE / 2),
