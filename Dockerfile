@@ -34,7 +34,7 @@ COPY . .
 # binaries are copied out of the cached target dir in the same step.
 RUN --mount=type=cache,id=planet-cargo-registry,target=/usr/local/cargo/registry \
     --mount=type=cache,id=planet-target,target=/src/target \
-    cargo build --release --locked -p planet-server -p planet-preprocess \
+    cargo build --release --locked -p planet-server-bin -p planet-preprocess \
  && install -D -s -m 0755 target/release/planet-server /out/planet-server \
  && install -D -s -m 0755 target/release/planet-build /out/planet-build
 

@@ -148,8 +148,8 @@ def cmd_dockerfile() -> int:
         if st["name"] in ("runtime", "runtime-prebuilt"):
             c.ok(st["base"] == "runtime-base", f"{st['name']} is built FROM runtime-base", st["base"])
     runs = " ".join(a for w, a in ins if w == "RUN")
-    c.ok("cargo build --release --locked -p planet-server -p planet-preprocess" in runs,
-         "builder runs cargo build --release --locked -p planet-server -p planet-preprocess")
+    c.ok("cargo build --release --locked -p planet-server-bin -p planet-preprocess" in runs,
+         "builder runs cargo build --release --locked -p planet-server-bin -p planet-preprocess")
     copies = {st["name"]: " ".join(a for w, a in st["ins"] if w == "COPY") for st in stages}
     c.ok("--from=builder" in copies.get("runtime", ""), "runtime copies the binaries from the builder stage")
     c.ok("--from=prebuilt" in copies.get("runtime-prebuilt", ""),

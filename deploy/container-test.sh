@@ -92,7 +92,7 @@ trap 'exit 130' INT TERM
 # ------------------------------------------------------------------ build
 step "binaries (release: planet-server, planet-build; the clients: planet-view, planet-bench)"
 t0=$(now_ms)
-(cd "$ROOT" && cargo build --release --locked -q -p planet-server -p planet-preprocess)
+(cd "$ROOT" && cargo build --release --locked -q -p planet-server-bin -p planet-preprocess)
 build_ms=$(( $(now_ms) - t0 ))
 # The clients (planet-view, planet-bench) as ./scripts/test builds them, so
 # that after its build this is a no-op (a subset of packages could resolve

@@ -26,7 +26,7 @@ if ! command -v "${NGINX:-/usr/sbin/nginx}" >/dev/null 2>&1; then
   echo "nginx not found: apt-get install nginx (or set NGINX)" >&2
   exit 2
 fi
-cargo build --release -p planet-bench -p planet-server
+cargo build --release -p planet-bench -p planet-server-bin
 echo "== $(date -u +%FT%TZ) uptime: $(uptime)"
 target/release/planet-bench server "${DB_ARGS[@]}" --nginx --nginx-bin "${NGINX:-/usr/sbin/nginx}" "$@"
 RATES="${RATES-1000,2000,3000}"

@@ -25,7 +25,7 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -34,9 +34,9 @@ use anyhow::{anyhow, bail, Context, Result};
 use planet_client::net::Connection;
 use planet_protocol::Hello;
 
-use crate::server_bench::{
+use crate::server::{
     bench_connect_options, default_server_bin, proc_rss, raise_nofile_limit, request_list,
-    resolve_db, Req,
+    resolve_db, spawn_server, Req,
 };
 
 /// `planet-bench hostile` arguments.
@@ -94,7 +94,7 @@ fn start_server(args: &HostileArgs, db: &std::path::Path) -> Result<Srv> {
         Some(b) => b.clone(),
         None => default_server_bin()?,
     };
-    let database = crate::server_bench::db_name(db)?;
+    let database = crate::server::db_name(db)?;
     let dir = tempfile::tempdir()?;
     let cfg = dir.path().join("server.toml");
     // No cert/key: a generated certificate, development mode (empty token).
@@ -108,48 +108,14 @@ fn start_server(args: &HostileArgs, db: &std::path::Path) -> Result<Srv> {
             db.display()
         ),
     )?;
-    let mut child = Command::new(&bin)
-        .arg("--config")
-        .arg(&cfg)
-        .env(
-            "RUST_LOG",
-            std::env::var("PLANET_BENCH_SERVER_LOG").unwrap_or_else(|_| "error".into()),
-        )
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .with_context(|| format!("cannot start {}", bin.display()))?;
-    let stdout = child.stdout.take().context("no stdout")?;
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        use std::io::BufRead;
-        for line in std::io::BufReader::new(stdout).lines() {
-            let Ok(line) = line else { break };
-            let _ = tx.send(line);
-        }
-    });
-    let (mut addr, mut metrics, mut fingerprint) = (None, None, None);
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while addr.is_none() || metrics.is_none() || fingerprint.is_none() {
-        let left = deadline.saturating_duration_since(Instant::now());
-        let Ok(line) = rx.recv_timeout(left) else {
-            let _ = child.kill();
-            bail!("{} did not print its addresses", bin.display());
-        };
-        if let Some(f) = line.strip_prefix("cert-sha256 ") {
-            fingerprint = Some(f.trim().to_string());
-        } else if let Some(a) = line.strip_prefix("listening ") {
-            addr = Some(a.trim().parse::<SocketAddr>()?);
-        } else if let Some(a) = line.strip_prefix("metrics ") {
-            metrics = Some(a.trim().parse::<SocketAddr>()?);
-        }
-    }
+    let mut cmd = Command::new(&bin);
+    cmd.arg("--config").arg(&cfg);
+    let s = spawn_server(cmd, &bin, "error", true)?;
     Ok(Srv {
-        child,
-        addr: addr.context("address")?,
-        metrics: metrics.context("metrics address")?,
-        fingerprint: fingerprint.context("fingerprint")?,
+        child: s.child,
+        addr: s.addr,
+        metrics: s.metrics.context("metrics address")?,
+        fingerprint: s.fingerprint,
         database,
         _dir: dir,
     })

@@ -35,7 +35,7 @@ use planet_core::format::Header;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::server_bench::{
+use crate::server::{
     connect_many, cpu_seconds_of, latency, loadavg, ms, proc_rss, raise_nofile_limit, resolve_db,
     ServerMode, ServerUnderTest,
 };
@@ -308,7 +308,7 @@ pub struct LoadReport {
     /// Flight length.
     pub wall: Duration,
     /// Request latency.
-    pub latency: crate::server_bench::Latency,
+    pub latency: crate::server::Latency,
     /// Server CPU seconds during the flight.
     pub server_cpu: Option<f64>,
     /// Server (VmRSS, RssAnon) idle, after connecting, peak during the flight.
@@ -416,7 +416,7 @@ pub fn bench(args: &LoadArgs) -> Result<LoadReport> {
     let stop = Arc::new(AtomicBool::new(false));
     let peak = Arc::new(Mutex::new((0u64, 0u64)));
     let cpu0 = pid.map(|p| cpu_seconds_of(&[p]));
-    let self0 = crate::server_bench::proc_cpu_seconds(std::process::id());
+    let self0 = crate::server::proc_cpu_seconds(std::process::id());
     let wall0 = Instant::now();
 
     // Monitor: server RSS every second, progress every 10 s.
@@ -449,7 +449,7 @@ pub fn bench(args: &LoadArgs) -> Result<LoadReport> {
                         (b - last.1) as f64 / 1e6 / dt,
                         live.in_flight.load(Ordering::Relaxed),
                         live.errors.load(Ordering::Relaxed),
-                        pid.and_then(crate::server_bench::proc_cpu_seconds)
+                        pid.and_then(crate::server::proc_cpu_seconds)
                             .map(|c| format!("{c:.1} s total"))
                             .unwrap_or_else(|| "n/a".into()),
                         loadavg()
@@ -493,7 +493,7 @@ pub fn bench(args: &LoadArgs) -> Result<LoadReport> {
     });
     let wall = wall0.elapsed().saturating_sub(Duration::from_millis(200));
     let cpu1 = pid.map(|p| cpu_seconds_of(&[p]));
-    let self1 = crate::server_bench::proc_cpu_seconds(std::process::id());
+    let self1 = crate::server::proc_cpu_seconds(std::process::id());
     let rss_end = pid.and_then(proc_rss);
     stop.store(true, Ordering::Relaxed);
     let _ = monitor.join();
@@ -637,7 +637,7 @@ mod tests {
     #[test]
     fn smoke_load_tiny() {
         let args = LoadArgs {
-            db: Some(crate::server_bench::tests_support::tiny_db()),
+            db: Some(crate::server::tests_support::tiny_db()),
             clients: 5,
             seconds: 2.0,
             server: ServerMode::InProcess,

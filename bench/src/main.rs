@@ -22,7 +22,7 @@ mod hostile;
 mod load;
 mod plot;
 mod resident;
-mod server_bench;
+mod server;
 mod soak;
 
 use anyhow::Result;
@@ -52,7 +52,7 @@ enum Command {
     Resident(resident::ResidentArgs),
     /// QUIC request throughput and latency of planet-server, against nginx
     /// serving the same file over HTTPS byte ranges (--nginx).
-    Server(server_bench::ServerArgs),
+    Server(server::ServerArgs),
     /// Many lightweight streaming clients against one server: load held,
     /// latency, errors, server CPU and memory per connection.
     Load(load::LoadArgs),
@@ -71,7 +71,7 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Flight(a) => flight::run(a),
         Command::Resident(a) => resident::run(a),
-        Command::Server(a) => server_bench::run(a),
+        Command::Server(a) => server::run(a),
         Command::Load(a) => load::run(a),
         Command::Hostile(a) => hostile::run(a),
         Command::Soak(a) => soak::run(a),
@@ -80,14 +80,6 @@ fn main() -> Result<()> {
 
 /// CPU time consumed by the calling thread.
 pub fn thread_cpu() -> std::time::Duration {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes into the valid timespec we pass.
-    let r = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    if r != 0 {
-        return std::time::Duration::ZERO;
-    }
+    let ts = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
     std::time::Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
 }

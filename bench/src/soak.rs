@@ -32,7 +32,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::load::{fly, ClientSpec, Live, Path};
-use crate::server_bench::{
+use crate::server::{
     connect_many, loadavg, proc_cpu_seconds, proc_rss, raise_nofile_limit, resolve_db, ServerMode,
     ServerUnderTest,
 };

@@ -5,61 +5,19 @@
 //! Needs Xvfb, xdotool and a Vulkan/GL adapter (lavapipe); `.ci/run`
 //! installs them, and the test fails, not skips, when one is missing.
 
+mod common;
+
+use common::{start_xvfb, which, xdg_runtime, Killed};
 use serde_json::Value;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_planet-view");
 
-fn which(name: &str) -> PathBuf {
-    std::env::var_os("PATH")
-        .and_then(|paths| {
-            std::env::split_paths(&paths)
-                .map(|p| p.join(name))
-                .find(|p| p.is_file())
-        })
-        .unwrap_or_else(|| panic!("{name} is not installed (apt-get install xvfb xdotool)"))
-}
-
-struct Killed(Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn start_xvfb() -> (Killed, u32) {
-    let xvfb = which("Xvfb");
-    let base = 500 + std::process::id() % 400;
-    for n in base..base + 50 {
-        if Path::new(&format!("/tmp/.X{n}-lock")).exists()
-            || Path::new(&format!("/tmp/.X11-unix/X{n}")).exists()
-        {
-            continue;
-        }
-        let child = Command::new(&xvfb)
-            .arg(format!(":{n}"))
-            .args(["-screen", "0", "1024x768x24", "-nolisten", "tcp"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start Xvfb");
-        let mut x = Killed(child);
-        let t0 = Instant::now();
-        while t0.elapsed() < Duration::from_secs(10) {
-            if Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
-                return (x, n);
-            }
-            if let Ok(Some(_)) = x.0.try_wait() {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-    panic!("Xvfb did not start");
+/// `name` on the `PATH`; panics when it is not installed.
+fn require(name: &str) -> PathBuf {
+    which(name).unwrap_or_else(|| panic!("{name} is not installed (apt-get install xvfb xdotool)"))
 }
 
 struct Viewer {
@@ -135,8 +93,9 @@ fn f(v: &Value, k: &str) -> f64 {
 
 #[test]
 fn every_control_moves_the_camera_as_specified() {
-    which("xdotool");
-    let (_x, display) = start_xvfb();
+    require("xdotool");
+    let (_x, display) =
+        start_xvfb(&require("Xvfb"), 500, "1024x768x24").expect("Xvfb did not start");
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("small.planetdb");
     let mut opts = planet_preprocess::default_procedural_options();
@@ -144,13 +103,7 @@ fn every_control_moves_the_camera_as_specified() {
     opts.seed = 3;
     planet_preprocess::build_procedural(&opts, &db).expect("build the test planet");
     let state = dir.path().join("state.jsonl");
-    let xdg = dir.path().join("xdg");
-    std::fs::create_dir_all(&xdg).unwrap();
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        std::fs::set_permissions(&xdg, std::fs::Permissions::from_mode(0o700)).unwrap();
-    }
+    let xdg = xdg_runtime(dir.path());
     let child = Command::new(BIN)
         .arg("--db")
         .arg(&db)

@@ -7,9 +7,10 @@
 
 mod common;
 
+use common::{start_xvfb, which, xdg_runtime};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Instant;
 
 const BIN: &str = env!("CARGO_BIN_EXE_planet-view");
 
@@ -24,17 +25,6 @@ fn small_db(dir: &Path, name: &str) -> PathBuf {
     planet_preprocess::build_procedural(&opts, &path).expect("build the test database");
     eprintln!("test database built in {:.1} s", t0.elapsed().as_secs_f64());
     path
-}
-
-fn xdg_runtime(dir: &Path) -> PathBuf {
-    let p = dir.join("xdg");
-    std::fs::create_dir_all(&p).unwrap();
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o700)).unwrap();
-    }
-    p
 }
 
 fn no_adapter(stderr: &str) -> bool {
@@ -167,53 +157,6 @@ fn render_command_writes_frames_and_the_error_falls_as_the_stream_converges() {
     );
 }
 
-fn which(name: &str) -> Option<PathBuf> {
-    std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|p| p.join(name))
-            .find(|p| p.is_file())
-    })
-}
-
-struct Xvfb(std::process::Child);
-
-impl Drop for Xvfb {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn start_xvfb(xvfb: &Path) -> Option<(Xvfb, u32)> {
-    let base = 90 + std::process::id() % 400;
-    for n in base..base + 50 {
-        let lock = PathBuf::from(format!("/tmp/.X{n}-lock"));
-        let sock = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
-        if lock.exists() || sock.exists() {
-            continue;
-        }
-        let child = Command::new(xvfb)
-            .arg(format!(":{n}"))
-            .args(["-screen", "0", "800x600x24", "-nolisten", "tcp"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .ok()?;
-        let mut x = Xvfb(child);
-        let t0 = Instant::now();
-        while t0.elapsed() < Duration::from_secs(10) {
-            if sock.exists() {
-                return Some((x, n));
-            }
-            if let Ok(Some(_)) = x.0.try_wait() {
-                break; // lost a race for the display: try the next one
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-    None
-}
-
 fn read_png(path: &Path) -> (u32, u32, Vec<u8>) {
     let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
     let mut r = dec.read_info().unwrap();
@@ -234,7 +177,7 @@ fn window_under_xvfb_shows_the_planet() {
     // --local builds the built-in planet into an empty cache on first use,
     // and uses it as it is the second time.
     let cache = dir.path().join("cache");
-    let Some((_x, n)) = start_xvfb(&xvfb) else {
+    let Some((_x, n)) = start_xvfb(&xvfb, 90, "800x600x24") else {
         common::skip_or_fail("Xvfb did not start");
         return;
     };

@@ -10,7 +10,7 @@ use planet_core::cube::direction_from_lat_lon;
 use planet_core::cube::FaceCoord;
 use planet_core::format::Header;
 use planet_core::{BlockId, Datum};
-use planet_view::CameraF64;
+use planet_render::CameraF64;
 
 /// Vertical field of view of the viewer (radians).
 pub const FOV_Y: f64 = 1.0;

@@ -20,7 +20,7 @@ use planet_client::streaming::StreamingClient;
 use planet_client::tree::PartialTree;
 use planet_client::{Camera, Client, ClientConfig, DrawBlock as ClientBlock};
 use planet_core::format::DbFile;
-use planet_view::{DrawBlock, Image};
+use planet_render::{DrawBlock, Image};
 use std::time::{Duration, Instant};
 
 /// The quality factor giving samples at most `px` pixels apart.
@@ -253,7 +253,7 @@ pub fn image_error(frame: &Image, reference: &Image) -> ImageError {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use planet_view::Projection;
+    use planet_render::Projection;
 
     fn img(depth: Vec<f32>, rgb: u8) -> Image {
         let n = depth.len();

@@ -10,7 +10,7 @@ use anyhow::{bail, Context, Result};
 use planet_client::trajectory::Trajectory;
 use planet_client::ClientConfig;
 use planet_linksim::LinkConfig;
-use planet_view::{DrawBlock, HeadlessRenderer, RenderSettings};
+use planet_render::{DrawBlock, HeadlessRenderer, RenderSettings};
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};

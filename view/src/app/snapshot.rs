@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use glam::DVec3;
 use planet_client::Camera;
 use planet_core::format::DbFile;
-use planet_view::{HeadlessRenderer, RenderSettings};
+use planet_render::{HeadlessRenderer, RenderSettings};
 use std::path::PathBuf;
 use std::time::Duration;
 

@@ -1,44 +1,84 @@
-//! Shared by the GPU test files: a headless renderer on whatever adapter
-//! wgpu finds (lavapipe in CI), or `None` with a note when there is none;
-//! [`skip_or_fail`], through which every skip of these tests goes.
+//! Shared by the viewer's window tests (`viewer.rs`, `controls.rs`): a
+//! private Xvfb display, a child process killed on drop, and a private
+//! `XDG_RUNTIME_DIR`.
 
-use planet_view::HeadlessRenderer;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// `name` on the `PATH`, if installed.
+pub fn which(name: &str) -> Option<PathBuf> {
+    std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join(name))
+            .find(|p| p.is_file())
+    })
+}
+
+/// A child process (Xvfb, the viewer) killed and reaped on drop.
+pub struct Killed(pub Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `xvfb` on the first free display from `base + pid % 400` (50
+/// tries) with one screen of `screen` (e.g. `800x600x24`); `None` when none
+/// started.
+pub fn start_xvfb(xvfb: &Path, base: u32, screen: &str) -> Option<(Killed, u32)> {
+    let base = base + std::process::id() % 400;
+    for n in base..base + 50 {
+        let lock = PathBuf::from(format!("/tmp/.X{n}-lock"));
+        let sock = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
+        if lock.exists() || sock.exists() {
+            continue;
+        }
+        let child = Command::new(xvfb)
+            .arg(format!(":{n}"))
+            .args(["-screen", "0", screen, "-nolisten", "tcp"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .ok()?;
+        let mut x = Killed(child);
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_secs(10) {
+            if sock.exists() {
+                return Some((x, n));
+            }
+            if let Ok(Some(_)) = x.0.try_wait() {
+                break; // lost a race for the display: try the next one
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    None
+}
+
+/// `dir/xdg`, created with mode 0700, for the viewer's `XDG_RUNTIME_DIR`.
+pub fn xdg_runtime(dir: &Path) -> PathBuf {
+    let p = dir.join("xdg");
+    std::fs::create_dir_all(&p).unwrap();
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o700)).unwrap();
+    }
+    p
+}
 
 /// Skips a test that cannot run here (no adapter, no Xvfb): prints `reason`
 /// and returns, so that the caller returns. Under `PLANET_CI=1` (set by
 /// `.ci/run`) or `PLANET_REQUIRE_ALL=1` it panics instead: in CI a skip is a
 /// failure.
+#[allow(dead_code)] // not every test file that shares this module skips
 pub fn skip_or_fail(reason: &str) {
     let set = |v: &str| std::env::var(v).is_ok_and(|x| x == "1");
     if set("PLANET_CI") || set("PLANET_REQUIRE_ALL") {
         panic!("{reason} (PLANET_CI or PLANET_REQUIRE_ALL is set: a skip fails)");
     }
     eprintln!("NOTE: skipping, {reason}");
-}
-
-/// A `width × height` headless renderer, with `XDG_RUNTIME_DIR` set to a
-/// private temporary directory when the environment has none (Mesa warns
-/// without one).
-#[allow(dead_code)] // viewer.rs shares this module without rendering headless
-pub fn headless(width: u32, height: u32) -> Option<HeadlessRenderer> {
-    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        let dir = std::env::temp_dir().join("planet-view-xdg");
-        let _ = std::fs::create_dir_all(&dir);
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700));
-        }
-        std::env::set_var("XDG_RUNTIME_DIR", &dir);
-    }
-    match HeadlessRenderer::new(width, height) {
-        Ok(r) => {
-            eprintln!("adapter: {}", r.adapter_name);
-            Some(r)
-        }
-        Err(e) => {
-            skip_or_fail(&format!("no GPU adapter: {e}"));
-            None
-        }
-    }
 }

@@ -1,5 +1,5 @@
 //! The GPU computes the camera-relative vertex position with the same bits as
-//! the CPU replica `planet_view::camera_relative::camera_relative`, so the
+//! the CPU replica `planet_render::camera_relative::camera_relative`, so the
 //! precision measured in `numerics.rs` is what the renderer gets: no shader
 //! compiler reassociated the TwoSum away. Runs the renderer's WGSL function in
 //! a compute shader on whatever adapter wgpu finds (lavapipe in CI); prints a
@@ -7,7 +7,7 @@
 
 mod common;
 
-use planet_view::camera_relative::{
+use planet_render::camera_relative::{
     camera_relative, low_part_f16, low_part_f32, split_f32, SplitOffset, WGSL,
 };
 use wgpu::util::DeviceExt;

@@ -27,7 +27,7 @@
 //! an ulp: ≤ 0.49 mm per coordinate within 16 km) plus the low parts' tiny
 //! roundings, whatever the block size. [`camera_relative`] is the CPU replica
 //! of the shader function in `camera_relative.wgsl`, operation for operation;
-//! `view/tests/gpu_precision.rs` checks that the GPU's results are the same
+//! `render/tests/gpu_precision.rs` checks that the GPU's results are the same
 //! bits. It caught lavapipe (Mesa's NIR treats float ops as reassociable and
 //! folds `(a + b) − a` to `b`) zeroing the TwoSum error in 917 of 4 096
 //! cases; the shader now passes its intermediate sums through an OR with an

@@ -1,7 +1,7 @@
 //! Cost of crack fixing at a fixed triangle budget (thesis §4.6, Table 4.2:
 //! a few per cent at about 2 M triangles per frame).
 //!
-//! `cargo bench -p planet-view --bench crack_fixing` renders the same scene,
+//! `cargo bench -p planet-render --bench crack_fixing` renders the same scene,
 //! about 2 M triangles of W = 64 blocks over the whole planet with LOD 0 and
 //! LOD 1 mixed (so about half the edges need stitching), alternately with
 //! and without edge strips, and prints a table: the renderer's CPU time per
@@ -12,9 +12,11 @@
 //! `PLANET_BENCH_FRAMES` sets the frames per setting (default 12).
 
 use planet_core::{BlockId, Datum, Edge, Face};
-use planet_view::mesh::sample_position;
-use planet_view::render::{COLOR_FORMAT, DEPTH_FORMAT};
-use planet_view::{BlockMesh, CameraF64, DrawBlock, FrameTarget, HeadlessRenderer, RenderSettings};
+use planet_render::mesh::sample_position;
+use planet_render::render::{COLOR_FORMAT, DEPTH_FORMAT};
+use planet_render::{
+    BlockMesh, CameraF64, DrawBlock, FrameTarget, HeadlessRenderer, RenderSettings,
+};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;

@@ -1,4 +1,5 @@
-//! `planet-view`: the wgpu renderer of the planet-streaming system.
+//! `planet-render`: the wgpu renderer of the planet-streaming system (the
+//! `planet-view` binary draws with it).
 //!
 //! The streaming client decides *what* to draw; this crate draws a list of
 //! [`DrawBlock`]s:

@@ -1,4 +1,4 @@
-// Camera-relative position with one rounding (view/src/camera_relative.rs):
+// Camera-relative position with one rounding (render/src/camera_relative.rs):
 // TwoSum of the high parts, then the low parts and the TwoSum error, then the
 // one rounding that matters. Keep in step with `camera_relative()` in Rust.
 //

@@ -5,9 +5,9 @@ mod common;
 
 use planet_core::cube::plane_from_angle;
 use planet_core::{BlockId, Datum, Edge, Face};
-use planet_view::masks::Masks;
-use planet_view::mesh::sample_position;
-use planet_view::{
+use planet_render::masks::Masks;
+use planet_render::mesh::sample_position;
+use planet_render::{
     BlockMesh, BlockTexture, CameraF64, ColourRef, DepthMode, DrawBlock, HeadlessRenderer, Image,
     RenderSettings,
 };
@@ -528,7 +528,7 @@ fn ancestor_texture_is_used_with_its_transform() {
     assert!(px[1] > px[0] && px[1] > px[2], "ramp pixel {px:?}");
 }
 
-/// Aerial perspective (render.rs `Atmosphere`): seen straight down from
+/// Aerial perspective (render/settings.rs `Atmosphere`): seen straight down from
 /// orbit the ground keeps its colour (a thin air column), seen at a grazing
 /// angle it takes the sky's; and every eye of docs/NUMERICS.md (1 m above
 /// the ground, 1000 radii out, inside the planet) gives finite colours.
@@ -551,7 +551,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
     };
     let blueness = |p: [u8; 3]| p[2] as f64 - p[1] as f64;
     let mut shot = |cam: &CameraF64, air: bool| {
-        r.renderer.settings.atmosphere = air.then_some(planet_view::render::Atmosphere::EARTH);
+        r.renderer.settings.atmosphere = air.then_some(planet_render::render::Atmosphere::EARTH);
         r.render(cam, &blocks).unwrap()
     };
     // Straight down from 2000 km.
@@ -644,7 +644,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
             .count();
         assert_eq!(black, 0, "{name}: {black} black pixels");
         // Ground or background by depth: the background's colour is the
-        // sky of the air at the eye (render.rs `Atmosphere::sky`), not one
+        // sky of the air at the eye (render/settings.rs `Atmosphere::sky`), not one
         // colour.
         assert_eq!(
             !img.is_background(SIZE / 2, SIZE / 2),

@@ -9,15 +9,15 @@
 //! cast to f32; the shader computes `clip = view_proj · (pos + offset)` in
 //! f32.
 //!
-//! `CARGO_TARGET_DIR=/work/target-view cargo test -p planet-view --test numerics -- --nocapture`
+//! `CARGO_TARGET_DIR=/work/target-view cargo test -p planet-render --test numerics -- --nocapture`
 //! prints the measured worst cases (lines starting with `NUMERICS`).
 
 use planet_core::cube::FaceCoord;
 use planet_core::{BlockId, Datum, Face};
-use planet_view::camera_relative::{camera_relative, low_part_f32, SplitOffset};
-use planet_view::clip_planes::{horizon_planes, MIN_NEAR};
-use planet_view::mesh::{sample_position, BlockMesh};
-use planet_view::{CameraF64, Projection};
+use planet_render::camera_relative::{camera_relative, low_part_f32, SplitOffset};
+use planet_render::clip_planes::{horizon_planes, MIN_NEAR};
+use planet_render::mesh::{sample_position, BlockMesh};
+use planet_render::{CameraF64, Projection};
 
 const W: usize = 64;
 
@@ -37,7 +37,7 @@ fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
-/// Column-major product, as `render.rs` composes `proj · view`.
+/// Column-major product, as `render/frame.rs` composes `proj · view`.
 fn mat_mul(a: [[f64; 4]; 4], b: [[f64; 4]; 4]) -> [[f64; 4]; 4] {
     let mut out = [[0.0; 4]; 4];
     for col in 0..4 {

@@ -61,7 +61,7 @@ fn ramp(a: f32) -> vec3<f32> {
     return mix(brown, white, clamp((a - 1500.0) / 3500.0, 0.0, 1.0));
 }
 
-// Aerial perspective (render.rs `Atmosphere`): optical depth rho(h) L / V
+// Aerial perspective (render/settings.rs `Atmosphere`): optical depth rho(h) L / V
 // with L the distance, at most the air column H / cos(zenith) at the point.
 fn aerial(c: vec3<f32>, rel: vec3<f32>, alt: f32) -> vec3<f32> {
     if (g.atmos.z < 0.5) {
@@ -79,7 +79,7 @@ fn aerial(c: vec3<f32>, rel: vec3<f32>, alt: f32) -> vec3<f32> {
     let tau = exp(-h / g.atmos.x) * path / g.atmos.y;
     let haze = 1.0 - exp(-tau);
     let sun_up = clamp(dot(up, g.sun.xyz), 0.0, 1.0);
-    // The sky's colour: render.rs `Atmosphere::sky_colour`, which also
+    // The sky's colour: render/settings.rs `Atmosphere::sky_colour`, which also
     // clears the background inside the air (keep the two equal).
     let sky = vec3<f32>(0.50, 0.66, 0.90) * (0.2 + 0.8 * sun_up);
     return mix(c, sky, haze);
