@@ -30,9 +30,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use planet_client::net::{ConnectOptions, Connection};
 use planet_core::format::Tree;
 use planet_protocol::Hello;
+use planet_session::net::{ConnectOptions, Connection};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -594,7 +594,7 @@ pub async fn connect_many_on_with(
     endpoints: usize,
     max_udp_payload: Option<u16>,
 ) -> Result<Vec<Connection>> {
-    let tls = planet_client::tls::pinned(fingerprint)?;
+    let tls = planet_session::tls::pinned(fingerprint)?;
     let eps = (0..endpoints.min(n))
         .map(|_| bench_endpoint(srv_addr, max_udp_payload))
         .collect::<Result<Vec<_>>>()?;
@@ -629,9 +629,9 @@ pub async fn connect_many_on_with(
     Ok(out.into_iter().flatten().collect())
 }
 
-/// A client endpoint for the bench: `planet_client::net::new_endpoint_with`.
+/// A client endpoint for the bench: `planet_session::net::new_endpoint_with`.
 fn bench_endpoint(peer: SocketAddr, max_udp_payload: Option<u16>) -> Result<quinn::Endpoint> {
-    Ok(planet_client::net::new_endpoint_with(
+    Ok(planet_session::net::new_endpoint_with(
         peer,
         max_udp_payload,
     )?)
@@ -1693,7 +1693,7 @@ pub fn run(args: ServerArgs) -> Result<()> {
 
 /// Runs the benchmark, prints and returns the figures.
 pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
-    planet_client::tls::install_crypto_provider();
+    planet_session::tls::install_crypto_provider();
     let nofile = raise_nofile_limit();
     let db = resolve_db(&args.db)?;
     let list = request_list(&db, args.list_len, args.seed, args.elevation_share)?;
