@@ -13,14 +13,14 @@ use crate::plot;
 use crate::thread_cpu;
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use planet_client::net::{Connection, SessionConfig};
 use planet_client::quality::{QualityConfig, QualityMode};
-use planet_client::streaming::StreamingClient;
 use planet_client::trajectory::Trajectory;
 use planet_client::{Client, ClientConfig, Policy};
 use planet_linksim::{Link, LinkConfig};
 use planet_preprocess::db::Sampler;
-use planet_tests::{client_surface_elevation, probe_points, runtime, LocalServer};
+use planet_session::net::{Connection, SessionConfig};
+use planet_session::streaming::StreamingClient;
+use planet_testkit::harness::{client_surface_elevation, probe_points, runtime, LocalServer};
 use serde::Serialize;
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -273,7 +273,9 @@ pub fn run(args: FlightArgs) -> Result<()> {
                 },
                 a.db.display()
             );
-            planet_tests::build_procedural_db_with_detail(&a.db, a.levels, 1, &a.detail)?;
+            planet_testkit::harness::build_procedural_db_with_detail(
+                &a.db, a.levels, 1, &a.detail,
+            )?;
         }
         let needed = if a.no_needed {
             None

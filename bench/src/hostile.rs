@@ -31,8 +31,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use planet_client::net::Connection;
 use planet_protocol::Hello;
+use planet_session::net::Connection;
 
 use crate::server::{
     bench_connect_options, default_server_bin, proc_rss, raise_nofile_limit, request_list,
@@ -172,7 +172,7 @@ impl Kind {
 
 fn hostile_endpoint(ip: &str, fingerprint: &str, zero_window: bool) -> Result<quinn::Endpoint> {
     let mut ep = quinn::Endpoint::client(format!("{ip}:0").parse()?)?;
-    let tls = planet_client::tls::pinned(fingerprint)?;
+    let tls = planet_session::tls::pinned(fingerprint)?;
     let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls)
         .map_err(|e| anyhow!("client crypto: {e}"))?;
     let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
@@ -308,7 +308,7 @@ pub fn run(args: HostileArgs) -> Result<()> {
         .enable_all()
         .build()?;
     let hello = Hello::new("public", "", srv.database.clone());
-    let tls = planet_client::tls::pinned(&srv.fingerprint)?;
+    let tls = planet_session::tls::pinned(&srv.fingerprint)?;
     let opts = bench_connect_options();
     // Datagrams: the server must not offer them.
     let datagrams = good_rt.block_on(async {

@@ -9,7 +9,7 @@
 //! moved to a random place of the planet, turned by a random heading and
 //! started at a random phase, so the clients do not request the same records
 //! at the same time. All clients share one tokio runtime; each has its own
-//! [`planet_client::net::Connection`] (one QUIC connection, and, as
+//! [`planet_session::net::Connection`] (one QUIC connection, and, as
 //! `Connection` is built, its own UDP socket), its requests are one stream
 //! each and cancellations stop the streams.
 //!
@@ -27,11 +27,11 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Result};
-use planet_client::net::Connection;
 use planet_client::request_queue::QueueConfig;
 use planet_client::trajectory::{Keyframe, Trajectory};
 use planet_client::{Client, ClientConfig, TransportError};
 use planet_core::format::Header;
+use planet_session::net::Connection;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -210,7 +210,7 @@ pub(crate) async fn fly(
     let conn = spec.conn;
     let mut tick = tokio::time::interval_at(start, period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    type Fetch = (u64, Instant, Result<Vec<u8>, planet_client::net::NetError>);
+    type Fetch = (u64, Instant, Result<Vec<u8>, planet_session::net::NetError>);
     let mut fetches: tokio::task::JoinSet<Fetch> = tokio::task::JoinSet::new();
     let mut handles: HashMap<u64, tokio::task::AbortHandle> = HashMap::new();
     let mut last = start;
@@ -243,7 +243,7 @@ pub(crate) async fn fly(
                         res.errors += 1;
                         live.errors.fetch_add(1, Ordering::Relaxed);
                         res.first_error.get_or_insert_with(|| e.to_string());
-                        client.deliver(id, Err(TransportError(e.to_string())));
+                        client.deliver(id, Err(TransportError::request(e)));
                     }
                 }
             }
@@ -349,7 +349,7 @@ fn mb(b: u64) -> f64 {
 
 /// Runs the load test, prints and returns the figures.
 pub fn bench(args: &LoadArgs) -> Result<LoadReport> {
-    planet_client::tls::install_crypto_provider();
+    planet_session::tls::install_crypto_provider();
     let nofile = raise_nofile_limit();
     let db = resolve_db(&args.db)?;
     let base = Trajectory::builtin(&args.trajectory)

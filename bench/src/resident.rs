@@ -2,7 +2,7 @@
 //! scheduling: apply finished work, traverse both trees, importance, LOD
 //! selection, triggers, request queue, split/merge selection) with at least
 //! 10 000 resident blocks. The tree is grown over a synthetic database
-//! (`planet_client::testdb`, no network, inline decoding), then frames are
+//! (`planet_testkit::testdb`, no network, inline decoding), then frames are
 //! timed with the thread's CPU clock for a static camera, a camera turning
 //! on the spot (the eye stays: importance is reused, only visibility
 //! changes) and a moving camera (the eye drifts 0.01° of latitude, about
@@ -13,9 +13,9 @@ use anyhow::{bail, Result};
 use clap::Args;
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::request_queue::QueueConfig;
-use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
 use planet_client::trajectory::{camera_from_keyframe, Keyframe};
 use planet_client::{Client, ClientConfig, Policy};
+use planet_testkit::testdb::{FakeServer, TestDb, TestDbConfig};
 use std::time::Instant;
 
 #[derive(Args, Debug, Clone)]

@@ -200,7 +200,7 @@ async fn slot(
 
 /// `planet-bench soak`.
 pub fn run(args: SoakArgs) -> Result<()> {
-    planet_client::tls::install_crypto_provider();
+    planet_session::tls::install_crypto_provider();
     let nofile = raise_nofile_limit();
     let db = resolve_db(&args.db)?;
     let base = Trajectory::builtin(&args.trajectory)

@@ -145,14 +145,59 @@ pub enum ClientError {
     #[error(transparent)]
     Header(#[from] HeaderError),
     /// A decode worker could not be started.
-    #[error("cannot start decode worker: {0}")]
-    Thread(String),
+    #[error("cannot start decode worker")]
+    Thread(#[source] std::io::Error),
 }
 
-/// A failed request, as reported by the network layer.
-#[derive(Debug, Clone, PartialEq, Eq, Error)]
-#[error("transport error: {0}")]
-pub struct TransportError(pub String);
+/// The error a transport reports, kept as its source.
+pub type BoxError = Box<dyn std::error::Error + Send + Sync + 'static>;
+
+/// A failed request, as reported by the network layer (or any other
+/// transport: a file, a fake server). The variant decides what the client
+/// does with the request ([`Client::deliver`]); the transport's own error
+/// stays attached as the source.
+#[derive(Debug, Error)]
+pub enum TransportError {
+    /// The request failed because of its connection (lost, not connected),
+    /// not because of its record: it is forgotten without the per-block
+    /// backoff, so it is requested again as soon as the transport is back.
+    #[error("connection failed")]
+    Connection(#[source] BoxError),
+    /// The request itself failed (server error, stream reset, timeout,
+    /// unreadable record): its block is backed off exponentially before it
+    /// is requested again.
+    #[error("request failed")]
+    Request(#[source] BoxError),
+}
+
+impl TransportError {
+    /// A failure of the connection carrying `e`.
+    pub fn connection(e: impl Into<BoxError>) -> TransportError {
+        TransportError::Connection(e.into())
+    }
+
+    /// A failure of the request carrying `e`.
+    pub fn request(e: impl Into<BoxError>) -> TransportError {
+        TransportError::Request(e.into())
+    }
+
+    /// True for [`TransportError::Connection`].
+    pub fn is_connection(&self) -> bool {
+        matches!(self, TransportError::Connection(_))
+    }
+}
+
+/// `e` and its chain of sources, `: `-separated (for [`Client::last_error`]).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut source = e.source();
+    while let Some(c) = source {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        source = c.source();
+    }
+    s
+}
 
 /// A request to send.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -281,7 +326,7 @@ impl Client {
                             cv.notify_all();
                         }
                     })
-                    .map_err(|e| ClientError::Thread(e.to_string()))?;
+                    .map_err(ClientError::Thread)?;
                 workers.push(h);
             }
             Some(tx)
@@ -429,8 +474,18 @@ impl Client {
         }
     }
 
-    /// Hand over the response to request `id` (or its failure).
+    /// Hand over the response to request `id` (or its failure). A
+    /// [`TransportError::Connection`] is handled as
+    /// [`Client::connection_failed`]; a [`TransportError::Request`] backs
+    /// its block off.
     pub fn deliver(&mut self, id: u64, result: Result<Vec<u8>, TransportError>) {
+        let result = match result {
+            Err(e @ TransportError::Connection(_)) => {
+                self.connection_failed(id, e);
+                return;
+            }
+            r => r,
+        };
         if let Some(f) = self.queue.get(id) {
             self.predictor.observe_latency(f.age);
             if result.is_ok() {
@@ -447,7 +502,7 @@ impl Client {
         let bytes = match result {
             Ok(b) => b,
             Err(e) => {
-                self.last_error = Some(e.to_string());
+                self.last_error = Some(error_chain(&e));
                 self.backoff.failed(req.tree, req.block, self.clock);
                 return;
             }
@@ -498,7 +553,7 @@ impl Client {
     /// backoff, so it is requested again as soon as the session reconnects.
     pub fn connection_failed(&mut self, id: u64, error: TransportError) {
         if self.queue.take(id).is_some() {
-            self.last_error = Some(error.to_string());
+            self.last_error = Some(error_chain(&error));
         }
     }
 

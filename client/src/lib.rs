@@ -1,5 +1,9 @@
-//! Streaming client for planet databases: partial tree, importance, request
-//! queue and per-frame selection (no GPU, no network).
+//! Streaming client model for planet databases: partial tree, importance,
+//! request queue and per-frame selection. No GPU and no network: no socket,
+//! no async runtime, no TLS (`scripts/check-deps.sh` checks the dependency
+//! tree). The QUIC session that drives it over a real link is the crate
+//! `planet-session` (as quinn drives quinn-proto); tests drive it with the
+//! fake server of `planet-testkit`.
 //!
 //! Implements thesis chapter 3 (§3.4–3.6, Alg. 3.1) and the 3D / planetary
 //! parts of chapter 4 (§4.2.4, §4.3, §4.4.1, §4.5.4), each concept in one
@@ -26,7 +30,6 @@
 //! - [`client`]: the frame loop, decode workers, and the interface a network
 //!   layer and a renderer drive.
 //! - [`stats`]: per-frame and cumulative statistics.
-//! - [`testdb`]: a synthetic in-memory database and fake server.
 //!
 //! **Driving it.** Each frame: `let out = client.frame(&camera, dt);` draw
 //! `out.draw`, send every `out.send` request (`record.offset`, `record.size`)
@@ -38,21 +41,19 @@
 pub mod client;
 pub mod importance;
 pub mod link_estimate;
-pub mod net;
 pub mod quality;
 pub mod refinement;
 pub mod request_queue;
 pub mod selection;
 pub mod stats;
-pub mod streaming;
-pub mod testdb;
-pub mod tls;
 pub mod trajectory;
 pub mod tree;
 pub mod view_prediction;
 pub mod visibility;
 
-pub use client::{Client, ClientConfig, ClientError, FrameOutput, Outgoing, TransportError};
+pub use client::{
+    BoxError, Client, ClientConfig, ClientError, FrameOutput, Outgoing, TransportError,
+};
 pub use refinement::Policy;
 pub use selection::{ColourBinding, DrawBlock, NeighbourLod};
 pub use visibility::Camera;

@@ -15,9 +15,9 @@ use planet_client::refinement::Refiner;
 use planet_client::request_queue::OpKind;
 use planet_client::selection::{select, Selector};
 use planet_client::stats::FrameStats;
-use planet_client::testdb::FakeServer;
 use planet_client::visibility::View;
 use planet_client::{Camera, Client, Policy};
+use planet_testkit::testdb::FakeServer;
 use proptest::prelude::*;
 
 fn client(qf: f64) -> Client {

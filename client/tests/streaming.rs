@@ -8,7 +8,6 @@ use glam::DVec3;
 use planet_client::importance::{block_distance, importance, selected_lod, wants_split};
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::refinement::{Footprint, Kind};
-use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
 use planet_client::tree::Samples;
 use planet_client::visibility::{segment_hits_ball, View};
 use planet_client::{Camera, Client, ClientConfig, FrameOutput, Policy, TransportError};
@@ -16,6 +15,8 @@ use planet_core::cube::FaceCoord;
 use planet_core::format::Tree;
 use planet_core::lod::is_first_lod;
 use planet_core::BlockId;
+use planet_testkit::converge;
+use planet_testkit::testdb::{FakeServer, TestDb, TestDbConfig};
 use proptest::prelude::*;
 
 fn client(threads: usize) -> Client {
@@ -23,44 +24,12 @@ fn client(threads: usize) -> Client {
 }
 
 fn step(c: &mut Client, s: &mut FakeServer, cam: &Camera) -> FrameOutput {
-    let out = c.frame(cam, 1.0 / 60.0);
-    s.submit(&out);
-    for (id, bytes) in s.tick(db()) {
-        c.deliver(id, Ok(bytes));
-    }
-    c.wait_for_decodes();
-    out
+    converge::step(c, s, db(), cam)
 }
 
 /// Run until nothing is sent, in flight, decoding or pending for 3 frames.
 fn converge(c: &mut Client, s: &mut FakeServer, cam: &Camera, max: usize) -> FrameOutput {
-    let mut quiet = 0;
-    for _ in 0..max {
-        let out = step(c, s, cam);
-        c.tree().validate().expect("valid");
-        let idle = out.send.is_empty()
-            && c.queue().in_flight() == 0
-            && c.pending_ops().is_empty()
-            && c.decoding() == 0
-            && c.retries_waiting() == 0
-            && s.pending() == 0;
-        quiet = if idle { quiet + 1 } else { 0 };
-        if quiet >= 3 {
-            return out;
-        }
-        if std::env::var("DEBUG_CONVERGE").is_ok() {
-            eprintln!(
-                "{:?} send {:?} ops {:?} decoding {} pending {} err {:?}",
-                out.stats,
-                out.send,
-                c.pending_ops(),
-                c.decoding(),
-                s.pending(),
-                c.last_error()
-            );
-        }
-    }
-    panic!("did not converge in {max} frames");
+    converge::converge(c, s, db(), cam, max)
 }
 
 fn ground_camera() -> Camera {
@@ -317,7 +286,7 @@ fn corrupt_and_wrong_records_are_rejected_and_re_requested() {
     assert!(out.send.len() >= 2);
     let (a, b) = (out.send[0], out.send[1]);
     c.deliver(a.id, Ok(db().read(&b.record).expect("b")));
-    c.deliver(b.id, Err(TransportError("reset".into())));
+    c.deliver(b.id, Err(TransportError::request("reset")));
     let out = c.frame(&cam, 1.0 / 60.0);
     s.submit(&out);
     assert_eq!(out.stats.records_rejected, 1);
@@ -677,7 +646,7 @@ fn a_record_that_keeps_failing_is_retried_with_exponential_backoff() {
         for o in &out.send {
             if o.record.offset == failing {
                 requests += 1;
-                c.deliver(o.id, Err(TransportError("storage".into())));
+                c.deliver(o.id, Err(TransportError::request("storage")));
             } else {
                 c.deliver(o.id, Ok(db().read(&o.record).expect("record")));
             }

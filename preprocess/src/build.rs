@@ -261,56 +261,7 @@ impl Ctx<'_> {
     }
 }
 
-/// Geometric error of rendering a full elevation grid at its first LOD:
-/// max |LOD 0 − bilinear(LOD 1)| in stored units.
-pub fn elevation_lod_error(full: &[i16], w: usize) -> f64 {
-    // In quarter units (exact integers): edge middles are |2x − a − b| / 2,
-    // cell centres |4x − (sum of 4 corners)| / 4.
-    let side = w + 1;
-    let row = |j: usize| &full[j * side..(j + 1) * side];
-    let mut e4 = 0i32;
-    for j in 0..side {
-        let r = row(j);
-        if j % 2 == 0 {
-            for i in (1..side - 1).step_by(2) {
-                let d = 2 * r[i] as i32 - (r[i - 1] as i32 + r[i + 1] as i32);
-                e4 = e4.max(2 * d.abs());
-            }
-        } else {
-            let (up, down) = (row(j - 1), row(j + 1));
-            for i in (0..side).step_by(2) {
-                let d = 2 * r[i] as i32 - (up[i] as i32 + down[i] as i32);
-                e4 = e4.max(2 * d.abs());
-            }
-            for i in (1..side - 1).step_by(2) {
-                let d = 4 * r[i] as i32
-                    - (up[i - 1] as i32
-                        + up[i + 1] as i32
-                        + down[i - 1] as i32
-                        + down[i + 1] as i32);
-                e4 = e4.max(d.abs());
-            }
-        }
-    }
-    e4 as f64 / 4.0
-}
-
-/// Colour error of rendering a block at its filtered first LOD: max channel
-/// difference between each texel and its 2×2 cell's LOD 1 value.
-pub fn colour_lod_error(full: &[Rgb], lod1: &[Rgb], w: usize) -> f64 {
-    let h = w / 2;
-    let mut e = 0u8;
-    for j in 0..w {
-        for i in 0..w {
-            let m = lod1[(j / 2) * h + i / 2];
-            let t = full[j * w + i];
-            for ch in 0..3 {
-                e = e.max(t[ch].abs_diff(m[ch]));
-            }
-        }
-    }
-    e as f64
-}
+pub use planet_core::lod::{colour_lod_error, elevation_lod_error};
 
 fn build_block(ctx: &Ctx, b: BlockId, colour_here: bool) -> Result<Out, BuildError> {
     let side = EW + 1;
@@ -427,8 +378,7 @@ pub fn build(
             n = n.min(threads_for_memory(m, plan.max_level() as usize + 1));
         }
         b = b.num_threads(n);
-        b.build()
-            .map_err(|e| BuildError::Options(format!("thread pool: {e}")))?
+        b.build()?
     };
     pool.install(|| build_inner(src, plan, out, opts))
 }

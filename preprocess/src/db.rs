@@ -13,7 +13,7 @@
 //! fails one of these.
 
 use crate::build::GridSource;
-use crate::error::DbError;
+use crate::error::{DbError, RecordError};
 use planet_core::codec::{colour::psnr_of_mse, ColourCodec, ElevationCodec};
 use planet_core::format::{
     parse_record, peek_record_len, ChildRef, DbFile, Header, Tree, SUPERBLOCK_LEN,
@@ -30,6 +30,14 @@ fn open(path: &Path) -> Result<DbFile, DbError> {
         path: path.to_path_buf(),
         source,
     })
+}
+
+/// The error of a record at `offset` that cannot be read, parsed or decoded.
+fn bad<E: Into<RecordError>>(offset: u64) -> impl FnOnce(E) -> DbError {
+    move |e| DbError::Record {
+        offset,
+        source: e.into(),
+    }
 }
 
 fn corrupt(offset: u64, reason: impl Into<String>) -> DbError {
@@ -62,10 +70,10 @@ pub struct ScannedRecord {
 pub fn scan(path: &Path) -> Result<(DbFile, Vec<ScannedRecord>), DbError> {
     let db = open(path)?;
     let end = db.superblock.header_offset;
-    let file = std::fs::File::open(path).map_err(|e| corrupt(0, format!("reopen: {e}")))?;
+    let file = std::fs::File::open(path).map_err(|source| DbError::Reopen { source })?;
     let mut r = BufReader::with_capacity(1 << 20, file);
     r.seek(SeekFrom::Start(SUPERBLOCK_LEN as u64))
-        .map_err(|e| corrupt(SUPERBLOCK_LEN as u64, e.to_string()))?;
+        .map_err(bad(SUPERBLOCK_LEN as u64))?;
     let file_len = db.superblock.file_len;
     let mut at = SUPERBLOCK_LEN as u64;
     let mut out = Vec::new();
@@ -75,18 +83,16 @@ pub fn scan(path: &Path) -> Result<(DbFile, Vec<ScannedRecord>), DbError> {
             return Err(corrupt(at, "gap of fewer than 8 bytes before the header"));
         }
         let mut first = [0u8; 8];
-        r.read_exact(&mut first)
-            .map_err(|e| corrupt(at, e.to_string()))?;
-        let len = peek_record_len(&first).map_err(|e| corrupt(at, e.to_string()))? as u64;
+        r.read_exact(&mut first).map_err(bad(at))?;
+        let len = peek_record_len(&first).map_err(bad(at))? as u64;
         if at + len > end {
             return Err(corrupt(at, "record runs past the header"));
         }
         buf.clear();
         buf.extend_from_slice(&first);
         buf.resize(len as usize, 0);
-        r.read_exact(&mut buf[8..])
-            .map_err(|e| corrupt(at, e.to_string()))?;
-        let rec = parse_record(&buf, Some(file_len)).map_err(|e| corrupt(at, e.to_string()))?;
+        r.read_exact(&mut buf[8..]).map_err(bad(at))?;
+        let rec = parse_record(&buf, Some(file_len)).map_err(bad(at))?;
         out.push(ScannedRecord {
             offset: at,
             size: len as u32,
@@ -162,10 +168,14 @@ pub fn verify_against(
             let (kids, raw_len, payload) = check_ref(&db, &mut seen, &r, Tree::Elevation, b)?;
             ecodec
                 .decode(&payload, raw_len, ew, &mut grid)
-                .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                .map_err(bad(r.offset))?;
             if let (Some(src), true) = (source, kids.is_empty()) {
                 src.elevation_leaf(b, &mut src_grid)
-                    .map_err(|e| corrupt(r.offset, format!("source of {b:?}: {e}")))?;
+                    .map_err(|e| DbError::Source {
+                        offset: r.offset,
+                        block: b,
+                        source: Box::new(e),
+                    })?;
                 for (d, s) in grid.iter().zip(&src_grid) {
                     let e = (h.metres(*d) - h.metres(*s)).abs();
                     max_err = max_err.max(e);
@@ -223,17 +233,23 @@ pub fn verify_against(
                 let (kids, raw_len, payload) = check_ref(&db, &mut seen, &r, Tree::Colour, b)?;
                 let full = ccodec
                     .decode(&payload, raw_len, &lod1, cw)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                    .map_err(bad(r.offset))?;
                 // Lossless codecs reproduce the filtered LOD 1 exactly.
                 if lossless && lod::colour_filter(&full, cw) != lod1 {
                     return Err(corrupt(r.offset, format!("{b:?} colour LOD 1 mismatch")));
                 }
                 if let (Some(src), true) = (source, kids.is_empty()) {
                     src.elevation_leaf(b, &mut src_elev)
-                        .map_err(|e| corrupt(r.offset, format!("source of {b:?}: {e}")))?;
-                    let want = src
-                        .colour_leaf(b, &src_elev)
-                        .map_err(|e| corrupt(r.offset, format!("source of {b:?}: {e}")))?;
+                        .map_err(|e| DbError::Source {
+                            offset: r.offset,
+                            block: b,
+                            source: Box::new(e),
+                        })?;
+                    let want = src.colour_leaf(b, &src_elev).map_err(|e| DbError::Source {
+                        offset: r.offset,
+                        block: b,
+                        source: Box::new(e),
+                    })?;
                     let rse: f64 = full
                         .iter()
                         .zip(&want)
@@ -298,11 +314,8 @@ fn check_ref(
             *used = true;
         }
     }
-    let bytes = db
-        .read_record(r)
-        .map_err(|e| corrupt(r.offset, e.to_string()))?;
-    let rec = parse_record(&bytes, Some(db.superblock.file_len))
-        .map_err(|e| corrupt(r.offset, e.to_string()))?;
+    let bytes = db.read_record(r).map_err(bad(r.offset))?;
+    let rec = parse_record(&bytes, Some(db.superblock.file_len)).map_err(bad(r.offset))?;
     if rec.header.tree != tree || rec.header.block != b {
         return Err(corrupt(
             r.offset,
@@ -618,17 +631,14 @@ impl Sampler {
                 grid.copy_from_slice(g);
                 c.clone()
             } else {
-                let bytes = self
-                    .db
-                    .read_record(&r)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                let bytes = self.db.read_record(&r).map_err(bad(r.offset))?;
                 let rec = parse_record(&bytes, Some(self.db.superblock.file_len))
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                    .map_err(bad(r.offset))?;
                 if rec.header.block != b || rec.header.tree != Tree::Elevation {
                     return Err(corrupt(r.offset, "unexpected block"));
                 }
                 rec.decode_elevation(&h.elevation.codec, w, &mut grid)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                    .map_err(bad(r.offset))?;
                 cache.insert(b, (grid.clone(), rec.header.children.clone()));
                 rec.header.children
             };
@@ -674,14 +684,10 @@ impl Sampler {
             lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
             let mut stack = vec![(BlockId::root(*face), h.elevation.root_records[fi], full)];
             while let Some((b, r, mut grid)) = stack.pop() {
-                let bytes = self
-                    .db
-                    .read_record(&r)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
-                let rec =
-                    parse_record(&bytes, None).map_err(|e| corrupt(r.offset, e.to_string()))?;
+                let bytes = self.db.read_record(&r).map_err(bad(r.offset))?;
+                let rec = parse_record(&bytes, None).map_err(bad(r.offset))?;
                 rec.decode_elevation(&h.elevation.codec, w, &mut grid)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                    .map_err(bad(r.offset))?;
                 f(b, &grid);
                 for (k, c) in rec.header.children.iter().enumerate() {
                     let mut cg = vec![0i16; side * side];
@@ -706,15 +712,11 @@ impl Sampler {
                 ct.root_first_lods[fi].clone(),
             )];
             while let Some((b, r, lod1)) = stack.pop() {
-                let bytes = self
-                    .db
-                    .read_record(&r)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
-                let rec =
-                    parse_record(&bytes, None).map_err(|e| corrupt(r.offset, e.to_string()))?;
+                let bytes = self.db.read_record(&r).map_err(bad(r.offset))?;
+                let rec = parse_record(&bytes, None).map_err(bad(r.offset))?;
                 let full = rec
                     .decode_colour(&ct.codec, &lod1, w)
-                    .map_err(|e| corrupt(r.offset, e.to_string()))?;
+                    .map_err(bad(r.offset))?;
                 f(b, &full);
                 for (k, c) in rec.header.children.iter().enumerate() {
                     stack.push((b.child(k), *c, lod::split_colour(&full, w, k)));

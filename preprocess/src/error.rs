@@ -1,6 +1,8 @@
 //! Typed errors of the preprocessor library.
 
+use planet_core::codec::CodecError;
 use planet_core::format::FormatError;
+use planet_core::BlockId;
 use std::path::PathBuf;
 use thiserror::Error;
 
@@ -86,6 +88,9 @@ pub enum BuildError {
     /// Invalid options.
     #[error("invalid options: {0}")]
     Options(String),
+    /// The worker thread pool cannot be built.
+    #[error("thread pool: {0}")]
+    ThreadPool(#[from] rayon::ThreadPoolBuildError),
 }
 
 impl BuildError {
@@ -122,7 +127,45 @@ pub enum DbError {
         /// Why it is bad.
         reason: String,
     },
+    /// A record cannot be read, parsed or decoded.
+    #[error("corrupt database at offset {offset}: {source}")]
+    Record {
+        /// File offset of the record.
+        offset: u64,
+        /// Why.
+        source: RecordError,
+    },
+    /// The file cannot be opened again for the linear scan.
+    #[error("corrupt database at offset 0: reopen: {source}")]
+    Reopen {
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// Verifying against the sources: the source cannot give a leaf.
+    #[error("corrupt database at offset {offset}: source of {block:?}: {source}")]
+    Source {
+        /// File offset of the leaf's record.
+        offset: u64,
+        /// The leaf.
+        block: BlockId,
+        /// The source's error.
+        source: Box<BuildError>,
+    },
     /// The point asked for is invalid.
     #[error("invalid query: {0}")]
     Query(String),
+}
+
+/// Why a record of a database (or the bytes at an offset) is bad.
+#[derive(Debug, Error)]
+pub enum RecordError {
+    /// Reading failed.
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// The record does not parse or check.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// The payload does not decode.
+    #[error(transparent)]
+    Codec(#[from] CodecError),
 }

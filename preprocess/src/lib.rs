@@ -37,7 +37,7 @@ pub mod voidfill;
 pub use build::{
     build, BuildOptions, BuildStats, CodecOptions, ColourQuality, ElevationChoice, GridSource,
 };
-pub use error::{BuildError, DbError, GeoError};
+pub use error::{BuildError, DbError, GeoError, RecordError};
 pub use procedural::{
     build_procedural, check_procedural_options, default_procedural_options, DetailRegion,
     Procedural, ProceduralOptions,
@@ -237,8 +237,7 @@ pub fn resample_rasters(
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(opts.threads.unwrap_or_else(rayon::current_num_threads))
-        .build()
-        .map_err(|e| BuildError::Options(format!("thread pool: {e}")))?;
+        .build()?;
     let side = source::ELEVATION_WIDTH + 1;
     let start = std::time::Instant::now();
     let checksum = pool.install(|| {

@@ -62,10 +62,10 @@ fn binary_single_database_mode_healthcheck_sighup_sigterm() {
         .enable_all()
         .build()
         .unwrap();
-    let tls = planet_client::tls::pinned(&fingerprint).unwrap();
+    let tls = planet_session::tls::pinned(&fingerprint).unwrap();
     let (off, size) = recs[0];
     rt.block_on(async {
-        let (conn, w) = planet_client::net::Connection::connect(
+        let (conn, w) = planet_session::net::Connection::connect(
             addr,
             "localhost",
             tls.clone(),

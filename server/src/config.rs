@@ -71,6 +71,26 @@ pub enum ConfigError {
     /// A semantic error (duplicate names, unknown database, missing file...).
     #[error("invalid configuration: {0}")]
     Invalid(String),
+    /// An address does not parse.
+    #[error("invalid configuration: {what} address {text:?}")]
+    Address {
+        /// Which address (`listen`, `metrics`...).
+        what: String,
+        /// The text given.
+        text: String,
+        /// The parser's error.
+        source: std::net::AddrParseError,
+    },
+    /// A tenant's `token_file` cannot be read.
+    #[error("invalid configuration: tenant {tenant:?}: cannot read token_file {}", path.display())]
+    TokenFile {
+        /// The tenant.
+        tenant: String,
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
 }
 
 /// Where the TLS certificate comes from.
@@ -383,8 +403,11 @@ struct FileTenant {
 }
 
 fn parse_addr(what: &str, s: &str) -> Result<SocketAddr, ConfigError> {
-    s.parse()
-        .map_err(|e| ConfigError::Invalid(format!("{what} address {s:?}: {e}")))
+    s.parse().map_err(|source| ConfigError::Address {
+        what: what.to_string(),
+        text: s.to_string(),
+        source,
+    })
 }
 
 fn resolve(base: &Path, p: &Path) -> PathBuf {
@@ -571,13 +594,12 @@ impl ServerConfig {
                 (Some(tok), None) => tok,
                 (None, Some(f)) => {
                     let f = resolve(base_dir, &f);
-                    let s = std::fs::read_to_string(&f).map_err(|e| {
-                        ConfigError::Invalid(format!(
-                            "tenant {:?}: cannot read token_file {}: {e}",
-                            t.name,
-                            f.display()
-                        ))
-                    })?;
+                    let s =
+                        std::fs::read_to_string(&f).map_err(|source| ConfigError::TokenFile {
+                            tenant: t.name.clone(),
+                            path: f.clone(),
+                            source,
+                        })?;
                     s.trim_end_matches(['\n', '\r']).to_string()
                 }
                 _ => {

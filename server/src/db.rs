@@ -62,6 +62,18 @@ pub enum DbError {
         /// What is wrong.
         reason: String,
     },
+    /// The superblock or the header does not decode.
+    #[error("database {name:?} ({path}) is invalid: {part}: {source}")]
+    Format {
+        /// Database name.
+        name: String,
+        /// File path.
+        path: PathBuf,
+        /// `superblock` or `header`.
+        part: &'static str,
+        /// The decoder's error.
+        source: planet_core::format::FormatError,
+    },
 }
 
 /// Identity of a file on disk, to detect replacement.
@@ -156,6 +168,14 @@ impl MappedDb {
             path: path.to_path_buf(),
             reason,
         };
+        let undecodable = |part: &'static str| {
+            move |source| DbError::Format {
+                name: name.to_string(),
+                path: path.to_path_buf(),
+                part,
+                source,
+            }
+        };
         let file = File::open(path).map_err(io)?;
         let meta = file.metadata().map_err(io)?;
         if !meta.is_file() {
@@ -190,8 +210,7 @@ impl MappedDb {
         };
         let mut sb = [0u8; SUPERBLOCK_LEN];
         file.read_exact_at(&mut sb, 0).map_err(io)?;
-        let superblock =
-            Superblock::decode(&sb).map_err(|e| invalid(format!("superblock: {e}")))?;
+        let superblock = Superblock::decode(&sb).map_err(undecodable("superblock"))?;
         if superblock.file_len != len {
             return Err(invalid(format!(
                 "truncated or extended: superblock says {} bytes, file has {len}",
@@ -213,7 +232,7 @@ impl MappedDb {
         let mut header = vec![0u8; (end - superblock.header_offset) as usize];
         file.read_exact_at(&mut header, superblock.header_offset)
             .map_err(io)?;
-        Header::decode(&header, Some(len)).map_err(|e| invalid(format!("header: {e}")))?;
+        Header::decode(&header, Some(len)).map_err(undecodable("header"))?;
         Ok(MappedDb {
             name: name.to_string(),
             path: path.to_path_buf(),

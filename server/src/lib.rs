@@ -267,7 +267,7 @@ impl Server {
         let cert_der = ck.leaf_der().to_vec();
         let rustls_cfg = tls::rustls_server_config(&ck, config.zero_rtt)?;
         let quic_crypto = quinn::crypto::rustls::QuicServerConfig::try_from(rustls_cfg)
-            .map_err(|e| tls::TlsError::Config(e.to_string()))?;
+            .map_err(tls::TlsError::Quic)?;
         let mut server_cfg = quinn::ServerConfig::with_crypto(Arc::new(quic_crypto));
         server_cfg.transport_config(Arc::new(transport_config(&config)?));
 

@@ -22,21 +22,31 @@ use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 #[derive(Debug, thiserror::Error)]
 pub enum TlsError {
     /// A PEM file could not be read or parsed.
-    #[error("cannot load {what} from {path}: {reason}")]
+    #[error("cannot load {what} from {path}")]
     Pem {
         /// `certificate` or `private key`.
         what: &'static str,
         /// The file.
         path: String,
         /// Why.
-        reason: String,
+        #[source]
+        source: rustls::pki_types::pem::Error,
+    },
+    /// A PEM file holds no certificate.
+    #[error("no CERTIFICATE block in {path}")]
+    NoCertificate {
+        /// The file.
+        path: String,
     },
     /// Generating the development certificate failed.
-    #[error("cannot generate a development certificate: {0}")]
-    DevCert(String),
-    /// rustls or quinn refused the configuration.
-    #[error("invalid TLS configuration: {0}")]
-    Config(String),
+    #[error("cannot generate a development certificate")]
+    DevCert(#[source] rcgen::Error),
+    /// rustls refused the configuration.
+    #[error("invalid TLS configuration")]
+    Config(#[source] rustls::Error),
+    /// quinn refused the rustls configuration (no initial cipher suite).
+    #[error("invalid QUIC TLS configuration")]
+    Quic(#[source] quinn::crypto::rustls::NoInitialCipherSuite),
 }
 
 /// A certificate chain and its key.
@@ -52,22 +62,20 @@ impl CertKey {
     pub fn from_pem_files(cert: &Path, key: &Path) -> Result<CertKey, TlsError> {
         let chain: Vec<CertificateDer<'static>> = CertificateDer::pem_file_iter(cert)
             .and_then(|it| it.collect::<Result<Vec<_>, _>>())
-            .map_err(|e| TlsError::Pem {
+            .map_err(|source| TlsError::Pem {
                 what: "certificate",
                 path: cert.display().to_string(),
-                reason: e.to_string(),
+                source,
             })?;
         if chain.is_empty() {
-            return Err(TlsError::Pem {
-                what: "certificate",
+            return Err(TlsError::NoCertificate {
                 path: cert.display().to_string(),
-                reason: "no CERTIFICATE block".into(),
             });
         }
-        let key = PrivateKeyDer::from_pem_file(key).map_err(|e| TlsError::Pem {
+        let key = PrivateKeyDer::from_pem_file(key).map_err(|source| TlsError::Pem {
             what: "private key",
             path: key.display().to_string(),
-            reason: e.to_string(),
+            source,
         })?;
         Ok(CertKey { chain, key })
     }
@@ -78,7 +86,7 @@ impl CertKey {
             "localhost".to_string(),
             "127.0.0.1".to_string(),
         ])
-        .map_err(|e| TlsError::DevCert(e.to_string()))?;
+        .map_err(TlsError::DevCert)?;
         let key = PrivateKeyDer::Pkcs8(PrivatePkcs8KeyDer::from(ck.signing_key.serialize_der()));
         Ok(CertKey {
             chain: vec![ck.cert.der().clone()],
@@ -117,10 +125,10 @@ pub fn rustls_server_config(
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
         .with_protocol_versions(&[&rustls::version::TLS13])
-        .map_err(|e| TlsError::Config(e.to_string()))?
+        .map_err(TlsError::Config)?
         .with_no_client_auth()
         .with_single_cert(ck.chain.clone(), ck.key.clone_key())
-        .map_err(|e| TlsError::Config(e.to_string()))?;
+        .map_err(TlsError::Config)?;
     cfg.alpn_protocols = vec![planet_protocol::ALPN.to_vec()];
     cfg.session_storage = rustls::server::ServerSessionMemoryCache::new(SESSION_CACHE_SIZE);
     // QUIC allows only 0 or u32::MAX (RFC 9001 §4.6.1).

@@ -35,11 +35,11 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use common::*;
-use planet_client::net::{ConnectOptions, Connection, NetError};
 use planet_protocol::{
     decode_request_stream, ErrorCode, FrameDecoder, Hello, LodRequest, Message, Status,
 };
 use planet_server::{Server, ServerConfig, ServerHandle};
+use planet_session::net::{ConnectOptions, Connection, NetError};
 
 /// Rounds of the record list the good client fetches per measurement.
 const LIST_ROUNDS: usize = 40;
@@ -71,12 +71,9 @@ fn serial() -> MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// The tests' runtime: 2 workers.
 fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
+    planet_testkit::runtime(2).expect("tokio runtime")
 }
 
 struct Fx {
@@ -413,7 +410,7 @@ fn control_stream_violations_and_requests_before_hello() {
         let n = under_attack(&fx, "control stream + before hello", move |ctl| {
             let (fp, req) = (fp.clone(), req.clone());
             async move {
-                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let tls = planet_session::tls::pinned(&fp).unwrap();
                 let mut ep = quinn::Endpoint::client("127.0.0.1:0".parse().unwrap()).unwrap();
                 let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls).unwrap();
                 ep.set_default_client_config(quinn::ClientConfig::new(Arc::new(crypto)));
@@ -500,7 +497,7 @@ fn wrong_tokens_in_a_row_and_other_tenants_database() {
         let (n, codes) = under_attack(&fx, "wrong tokens", move |ctl| {
             let fp = fp.clone();
             async move {
-                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let tls = planet_session::tls::pinned(&fp).unwrap();
                 let cases = [
                     (
                         Hello::new("acme", "s3creT", "earth"),
@@ -888,7 +885,7 @@ async fn replay_against_reusable_tickets() -> usize {
         }
     });
     let fp = planet_server::tls::sha256_hex(ck.leaf_der());
-    let mut tls = (*planet_client::tls::pinned(&fp).unwrap()).clone();
+    let mut tls = (*planet_session::tls::pinned(&fp).unwrap()).clone();
     tls.enable_early_data = true;
     let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(Arc::new(tls)).unwrap();
     let mut ep = quinn::Endpoint::client("127.0.0.1:0".parse().unwrap()).unwrap();
@@ -1014,7 +1011,7 @@ fn stream_floods_beyond_the_in_flight_limit() {
                     transport: Some(Arc::new(t)),
                     ..ConnectOptions::default()
                 };
-                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let tls = planet_session::tls::pinned(&fp).unwrap();
                 let (mut n, mut refused, mut blocked) = (0u64, 0u64, 0u64);
                 while ctl.go().await {
                     let (conn, _) =
@@ -1149,7 +1146,7 @@ fn clients_that_never_read_their_responses() {
                     transport: Some(Arc::new(t)),
                     ..ConnectOptions::default()
                 };
-                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let tls = planet_session::tls::pinned(&fp).unwrap();
                 let mut conns = Vec::new();
                 let mut streams = Vec::new();
                 let mut opened = 0u64;
@@ -1227,7 +1224,7 @@ fn thousands_of_connections_opened_and_dropped() {
         let n = under_attack(&fx, "connection churn", move |ctl| {
             let (fp, done) = (fp.clone(), Arc::clone(&done2));
             async move {
-                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let tls = planet_session::tls::pinned(&fp).unwrap();
                 let crypto =
                     quinn::crypto::rustls::QuicClientConfig::try_from(tls.clone()).unwrap();
                 let client_cfg = quinn::ClientConfig::new(Arc::new(crypto));
@@ -1324,7 +1321,7 @@ fn a_flooding_tenant_is_held_to_its_connection_and_request_limits() {
         let (served, refused) = under_attack(&fx, "tenant flood", move |ctl| {
             let (fp, mars) = (fp.clone(), Arc::clone(&mars));
             async move {
-                let tls = planet_client::tls::pinned(&fp).unwrap();
+                let tls = planet_session::tls::pinned(&fp).unwrap();
                 let served = Arc::new(AtomicU64::new(0));
                 let refused = Arc::new(AtomicU64::new(0));
                 let mut clients = Vec::new();

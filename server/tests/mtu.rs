@@ -8,8 +8,8 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::*;
-use planet_client::net::Connection;
 use planet_server::{Server, ServerConfig};
+use planet_session::net::Connection;
 
 /// Datagrams the client received for one fetch of `(off, size)`.
 async fn datagrams_for_fetch(conn: &Connection, id: u64, off: u64, size: u32) -> u64 {

@@ -13,9 +13,9 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use common::*;
-use planet_client::net::{ConnectOptions, Connection, NetError};
 use planet_protocol::{ErrorCode, Hello, LodRequest};
 use planet_server::{ReloadOutcome, Server, ServerConfig, ServerHandle};
+use planet_session::net::{ConnectOptions, Connection, NetError};
 
 static SERIAL: Mutex<()> = Mutex::new(());
 
@@ -23,12 +23,9 @@ fn serial() -> MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// The tests' runtime: 2 workers.
 fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
+    planet_testkit::runtime(2).expect("tokio runtime")
 }
 
 /// Resident set size of this process in bytes (`VmRSS`).

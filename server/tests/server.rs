@@ -1,16 +1,16 @@
 //! End-to-end tests of planet-server with the client transport
-//! (`planet_client::net`) and raw QUIC streams.
+//! (`planet_session::net`) and raw QUIC streams.
 
 mod common;
 
 use std::time::Duration;
 
 use common::*;
-use planet_client::net::{ConnectOptions, NetError, NetEvent, Session, SessionConfig};
 use planet_protocol::{
     ErrorCode, FrameDecoder, Hello, LodRequest, Message, Response, ResponseDecoder,
 };
 use planet_server::{ReloadOutcome, Server, ServerConfig};
+use planet_session::net::{ConnectOptions, NetError, NetEvent, Session, SessionConfig};
 
 fn server_code(r: Result<Vec<u8>, NetError>) -> ErrorCode {
     match r {
@@ -27,7 +27,7 @@ async fn fetches_whole_tree_and_counts_metrics() {
     let h = Server::start(cfg).await.unwrap();
     assert_eq!(h.cert_fingerprint().len(), 64);
     assert_eq!(
-        planet_client::tls::sha256_hex(h.cert_der()),
+        planet_session::tls::sha256_hex(h.cert_der()),
         h.cert_fingerprint()
     );
 
@@ -114,10 +114,10 @@ async fn connections_can_share_one_client_endpoint() {
     let (cfg, recs) = two_tenant_config(dir.path());
     let file = file_bytes(&dir.path().join("earth.planetdb"));
     let h = Server::start(cfg).await.unwrap();
-    let ep = planet_client::net::new_endpoint(h.local_addr()).unwrap();
+    let ep = planet_session::net::new_endpoint(h.local_addr()).unwrap();
     let mut conns = vec![];
     for _ in 0..3 {
-        let (c, w) = planet_client::net::Connection::connect_on(
+        let (c, w) = planet_session::net::Connection::connect_on(
             &ep,
             h.local_addr(),
             "localhost",

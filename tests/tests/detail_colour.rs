@@ -43,8 +43,13 @@ fn expand(tree: &mut PartialTree, db: &DbFile, kind: Tree) -> Vec<BlockId> {
 fn client_loads_the_deep_colour_tree_with_its_binding() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("d.db");
-    planet_tests::build_procedural_db_with_detail(&path, 2, 5, &["45,0,300,6".parse().unwrap()])
-        .unwrap();
+    planet_testkit::harness::build_procedural_db_with_detail(
+        &path,
+        2,
+        5,
+        &["45,0,300,6".parse().unwrap()],
+    )
+    .unwrap();
     let db = DbFile::open(&path).unwrap();
     let header = Arc::new(db.header.clone());
     assert_eq!(header.colour.as_ref().unwrap().max_level, 6);

@@ -1,14 +1,14 @@
 //! End-to-end: real server, real QUIC, through the linksim relay.
 
 use planet_client::refinement::KEEP_LOD0;
-use planet_client::streaming::StreamingClient;
 use planet_client::trajectory::{camera_from_keyframe, Keyframe};
 use planet_client::tree::Samples;
 use planet_client::{Camera, ClientConfig, DrawBlock, FrameOutput, Outgoing};
 use planet_core::{BlockId, Datum};
 use planet_linksim::{Link, LinkConfig};
 use planet_preprocess::db::Sampler;
-use planet_tests::{block_behind_horizon, build_procedural_db, runtime, LocalServer};
+use planet_session::streaming::StreamingClient;
+use planet_testkit::harness::{block_behind_horizon, build_procedural_db, runtime, LocalServer};
 use proptest::prelude::*;
 use std::collections::HashMap;
 use std::path::PathBuf;

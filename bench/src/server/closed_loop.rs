@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Result;
-use planet_client::net::Connection;
+use planet_session::net::Connection;
 
 use super::*;
 

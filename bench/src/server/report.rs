@@ -37,7 +37,7 @@ pub fn run(args: ServerArgs) -> Result<()> {
 
 /// Runs the benchmark, prints and returns the figures.
 pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
-    planet_client::tls::install_crypto_provider();
+    planet_session::tls::install_crypto_provider();
     let nofile = raise_nofile_limit();
     let db = resolve_db(&args.db)?;
     let list = request_list(&db, args.list_len, args.seed, args.elevation_share)?;

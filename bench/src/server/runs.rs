@@ -4,7 +4,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use planet_client::net::Connection;
+use planet_session::net::Connection;
 
 use super::*;
 

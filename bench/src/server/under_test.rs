@@ -8,8 +8,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use planet_client::net::{ConnectOptions, Connection};
 use planet_protocol::Hello;
+use planet_session::net::{ConnectOptions, Connection};
 
 use super::*;
 
@@ -276,7 +276,7 @@ pub async fn connect_many_on_with(
     endpoints: usize,
     max_udp_payload: Option<u16>,
 ) -> Result<Vec<Connection>> {
-    let tls = planet_client::tls::pinned(fingerprint)?;
+    let tls = planet_session::tls::pinned(fingerprint)?;
     let eps = (0..endpoints.min(n))
         .map(|_| bench_endpoint(srv_addr, max_udp_payload))
         .collect::<Result<Vec<_>>>()?;
@@ -311,12 +311,12 @@ pub async fn connect_many_on_with(
     Ok(out.into_iter().flatten().collect())
 }
 
-/// A client endpoint for the bench: `planet_client::net::new_endpoint_with`.
+/// A client endpoint for the bench: `planet_session::net::new_endpoint_with`.
 pub(crate) fn bench_endpoint(
     peer: SocketAddr,
     max_udp_payload: Option<u16>,
 ) -> Result<quinn::Endpoint> {
-    Ok(planet_client::net::new_endpoint_with(
+    Ok(planet_session::net::new_endpoint_with(
         peer,
         max_udp_payload,
     )?)

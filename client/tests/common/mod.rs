@@ -7,8 +7,8 @@ use std::sync::OnceLock;
 
 use glam::DVec3;
 use planet_client::quality::{QualityConfig, QualityMode};
-use planet_client::testdb::{TestDb, TestDbConfig};
 use planet_client::{Client, ClientConfig, Policy};
+use planet_testkit::testdb::{TestDb, TestDbConfig};
 use proptest::prelude::*;
 
 /// The default synthetic database, built once per test binary.

@@ -170,8 +170,7 @@ pub fn compress(raw: &[u8]) -> Vec<u8> {
 
 /// lz4 block decompression to exactly `raw_len` bytes.
 pub fn decompress(data: &[u8], raw_len: usize) -> Result<Vec<u8>, CodecError> {
-    let out =
-        lz4_flex::block::decompress(data, raw_len).map_err(|e| CodecError::Lz4(e.to_string()))?;
+    let out = lz4_flex::block::decompress(data, raw_len).map_err(CodecError::Lz4)?;
     if out.len() != raw_len {
         return Err(CodecError::Length {
             got: out.len(),

@@ -37,7 +37,7 @@ use std::cell::RefCell;
 use thiserror::Error;
 
 /// A payload that does not decode.
-#[derive(Debug, Error, PartialEq, Eq)]
+#[derive(Debug, Error)]
 pub enum CodecError {
     /// The payload has the wrong length for the block width.
     #[error("payload is {got} bytes, expected {expected}")]
@@ -57,11 +57,11 @@ pub enum CodecError {
         limit: usize,
     },
     /// lz4 decompression failed.
-    #[error("lz4 decompression failed: {0}")]
-    Lz4(String),
+    #[error("lz4 decompression failed")]
+    Lz4(#[source] lz4_flex::block::DecompressError),
     /// zstd decompression failed.
-    #[error("zstd decompression failed: {0}")]
-    Zstd(String),
+    #[error("zstd decompression failed")]
+    Zstd(#[source] std::io::Error),
     /// rANS decoding failed or left words over.
     #[error("rANS decoding: {0}")]
     Rans(String),
@@ -169,12 +169,10 @@ pub fn unzstd(data: &[u8], raw_len: usize, limit: usize) -> Result<Vec<u8>, Code
         let mut d = d.borrow_mut();
         let ctx = match d.as_mut() {
             Some(ctx) => ctx,
-            None => d.insert(
-                zstd::bulk::Decompressor::new().map_err(|e| CodecError::Zstd(e.to_string()))?,
-            ),
+            None => d.insert(zstd::bulk::Decompressor::new().map_err(CodecError::Zstd)?),
         };
         ctx.decompress_to_buffer(data, &mut out[..])
-            .map_err(|e| CodecError::Zstd(e.to_string()))
+            .map_err(CodecError::Zstd)
     })?;
     if n != raw_len {
         return Err(CodecError::Length {

@@ -7,7 +7,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
-use planet_client::net::{ConnectOptions, Connection, NetError};
 use planet_core::codec::{ElevationCodec, Payload};
 use planet_core::format::{
     encode_record, parse_record, ChildRef, DbWriter, Header, Tree, TreeInfo,
@@ -15,6 +14,7 @@ use planet_core::format::{
 use planet_core::{BlockId, Datum, Face};
 use planet_protocol::{Hello, Welcome};
 use planet_server::{DatabaseConfig, ServerConfig, ServerHandle, TenantConfig, TlsSource};
+use planet_session::net::{ConnectOptions, Connection, NetError};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// Deterministic, incompressible-ish bytes.
@@ -137,7 +137,7 @@ pub fn acme() -> Hello {
 }
 
 pub fn tls_for(h: &ServerHandle) -> Arc<rustls::ClientConfig> {
-    planet_client::tls::pinned(h.cert_fingerprint()).expect("pinned tls")
+    planet_session::tls::pinned(h.cert_fingerprint()).expect("pinned tls")
 }
 
 pub async fn connect(h: &ServerHandle, hello: Hello) -> Result<(Connection, Welcome), NetError> {

@@ -2,12 +2,13 @@
 //! cache directory, a database file served in-process, or a remote server;
 //! optionally through a simulated link.
 
-use planet_client::net::SessionConfig;
-use planet_client::streaming::{StreamingClient, StreamingError};
-use planet_client::{tls, ClientConfig};
+use planet_client::ClientConfig;
 use planet_linksim::{Link, LinkConfig};
 use planet_protocol::message::Hello;
 use planet_server::{Server, ServerConfig, ServerHandle};
+use planet_session::net::SessionConfig;
+use planet_session::streaming::{StreamingClient, StreamingError};
+use planet_session::tls;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;

@@ -16,11 +16,11 @@
 
 use crate::app::scene::{BuildMode, SceneBuilder};
 use planet_client::quality::{QualityConfig, QualityMode};
-use planet_client::streaming::StreamingClient;
 use planet_client::tree::PartialTree;
 use planet_client::{Camera, Client, ClientConfig, DrawBlock as ClientBlock};
 use planet_core::format::DbFile;
 use planet_render::{DrawBlock, Image};
+use planet_session::streaming::StreamingClient;
 use std::time::{Duration, Instant};
 
 /// The quality factor giving samples at most `px` pixels apart.
@@ -124,7 +124,7 @@ impl Reference {
                     for s in &out.send {
                         let r = db
                             .read_record(&s.record)
-                            .map_err(|e| planet_client::TransportError(e.to_string()));
+                            .map_err(planet_client::TransportError::request);
                         client.deliver(s.id, r);
                     }
                     let busy = !out.send.is_empty()

@@ -449,8 +449,8 @@ impl SceneBuilder {
 mod tests {
     use super::*;
     use glam::DVec3;
-    use planet_client::testdb::{FakeServer, TestDb, TestDbConfig};
     use planet_client::{Camera, Client, ClientConfig};
+    use planet_testkit::testdb::{FakeServer, TestDb, TestDbConfig};
 
     fn converge(client: &mut Client, db: &TestDb, cam: &Camera, frames: usize) -> Vec<ClientBlock> {
         let mut server = FakeServer::new(0);

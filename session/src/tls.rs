@@ -23,11 +23,11 @@ pub enum TlsError {
     #[error("invalid SHA-256 fingerprint {0:?}: expected 64 hex digits")]
     BadFingerprint(String),
     /// A trusted certificate was refused by the root store.
-    #[error("cannot trust certificate: {0}")]
-    BadCertificate(String),
+    #[error("cannot trust certificate")]
+    BadCertificate(#[source] rustls::Error),
     /// rustls refused the configuration.
-    #[error("invalid TLS configuration: {0}")]
-    Config(String),
+    #[error("invalid TLS configuration")]
+    Config(#[source] rustls::Error),
 }
 
 /// How the client authenticates the server.
@@ -133,7 +133,7 @@ pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, T
     let provider = provider();
     let builder = rustls::ClientConfig::builder_with_provider(Arc::clone(&provider))
         .with_protocol_versions(&[&rustls::version::TLS13])
-        .map_err(|e| TlsError::Config(e.to_string()))?;
+        .map_err(TlsError::Config)?;
     let mut cfg = match trust {
         ServerTrust::Fingerprint(fp) => builder
             .dangerous()
@@ -147,7 +147,7 @@ pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, T
             for der in ders {
                 roots
                     .add(CertificateDer::from(der.clone()))
-                    .map_err(|e| TlsError::BadCertificate(e.to_string()))?;
+                    .map_err(TlsError::BadCertificate)?;
             }
             builder.with_root_certificates(roots).with_no_client_auth()
         }

@@ -20,9 +20,8 @@
 //! of the database), the partial tree is discarded and a new [`Client`] is
 //! built from the new header.
 
-use crate::client::{Client, ClientConfig, ClientError, FrameOutput, TransportError};
 use crate::net::{NetError, NetEvent, Session, SessionConfig, SessionHandle};
-use crate::visibility::Camera;
+use planet_client::{Camera, Client, ClientConfig, ClientError, FrameOutput, TransportError};
 use planet_core::format::{FormatError, Header};
 use std::collections::HashSet;
 use std::time::{Duration, Instant};
@@ -178,14 +177,10 @@ impl StreamingClient {
                 NetEvent::Failed { id, error } => {
                     self.counters.failures += 1;
                     self.cancelled.remove(&id);
-                    let e = TransportError(error.to_string());
                     // A failure of the record backs its block off; one of
-                    // the connection does not (reconnecting is the session's).
-                    if error.is_connection_error() {
-                        self.client.connection_failed(id, e);
-                    } else {
-                        self.client.deliver(id, Err(e));
-                    }
+                    // the connection does not (reconnecting is the session's):
+                    // the client tells them apart by the variant.
+                    self.client.deliver(id, Err(TransportError::from(error)));
                 }
                 NetEvent::Cancelled { id } => {
                     self.cancelled.remove(&id);

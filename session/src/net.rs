@@ -15,6 +15,7 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use planet_client::TransportError;
 use planet_protocol::{
     quic, ClientHandshake, ErrorCode, ErrorMsg, FrameDecoder, HandshakeOutcome, Hello, LodRequest,
     Message, ProtocolError, Response, ResponseDecoder, Welcome,
@@ -50,9 +51,10 @@ pub enum NetError {
     /// The server's bytes violate the protocol.
     #[error("protocol error: {0}")]
     Protocol(ProtocolError),
-    /// Endpoint or TLS setup failed.
-    #[error("cannot connect: {0}")]
-    Connect(String),
+    /// Endpoint or TLS setup failed (the source says why; shared, so the
+    /// error stays `Clone` for the session's events).
+    #[error("cannot connect")]
+    Connect(#[source] Arc<dyn std::error::Error + Send + Sync + 'static>),
     /// The request was cancelled locally.
     #[error("cancelled")]
     Cancelled,
@@ -74,6 +76,11 @@ impl NetError {
         }
     }
 
+    /// A [`NetError::Connect`] with `e` as its source.
+    pub fn connect(e: impl std::error::Error + Send + Sync + 'static) -> NetError {
+        NetError::Connect(Arc::new(e))
+    }
+
     /// True if the connection is unusable (reconnect), false for a
     /// per-request failure.
     pub fn is_connection_error(&self) -> bool {
@@ -81,6 +88,19 @@ impl NetError {
             self,
             NetError::ConnectionLost { .. } | NetError::Connect(_) | NetError::NotConnected
         )
+    }
+}
+
+/// The client's view of a failed request: [`TransportError::Connection`]
+/// when the connection is unusable ([`NetError::is_connection_error`]),
+/// [`TransportError::Request`] otherwise; the [`NetError`] is the source.
+impl From<NetError> for TransportError {
+    fn from(e: NetError) -> Self {
+        if e.is_connection_error() {
+            TransportError::connection(e)
+        } else {
+            TransportError::request(e)
+        }
     }
 }
 
@@ -309,14 +329,14 @@ impl Connection {
         hello: Hello,
         opts: &ConnectOptions,
     ) -> Result<(Connection, Welcome), NetError> {
-        let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls)
-            .map_err(|e| NetError::Connect(e.to_string()))?;
+        let crypto =
+            quinn::crypto::rustls::QuicClientConfig::try_from(tls).map_err(NetError::connect)?;
         let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
         cfg.transport_config(opts.transport.clone().unwrap_or_else(default_transport));
         cfg.token_store(Arc::clone(&opts.tokens));
         let connecting = endpoint
             .connect_with(cfg, addr, server_name)
-            .map_err(|e| NetError::Connect(e.to_string()))?;
+            .map_err(NetError::connect)?;
         let (conn, early) = if opts.zero_rtt {
             match connecting.into_0rtt() {
                 Ok((conn, accepted)) => (conn, Some(accepted)),
@@ -981,8 +1001,19 @@ pub fn new_endpoint_with(
     let max = max_udp_payload.unwrap_or_else(|| auto_max_udp_payload(peer));
     let mut cfg = quinn::EndpointConfig::default();
     cfg.max_udp_payload_size(max)
-        .map_err(|_| NetError::Connect(format!("max_udp_payload {max} is outside 1200..=65527")))?;
-    client_endpoint(cfg, bind).map_err(|e| NetError::Connect(e.to_string()))
+        .map_err(|source| NetError::connect(UdpPayloadOutOfRange { max, source }))?;
+    client_endpoint(cfg, bind).map_err(NetError::connect)
+}
+
+/// A maximum UDP payload quinn refuses.
+#[derive(Debug, thiserror::Error)]
+#[error("max_udp_payload {max} is outside 1200..=65527")]
+pub struct UdpPayloadOutOfRange {
+    /// The payload asked for.
+    pub max: u16,
+    /// quinn's refusal.
+    #[source]
+    pub source: quinn::ConfigError,
 }
 
 /// A client endpoint on a UDP socket with 4 MiB buffers (capped by the

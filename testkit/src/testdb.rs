@@ -8,7 +8,7 @@
 //! vector after a configurable latency in frames, honours cancellations, and
 //! can corrupt chosen records once.
 
-use crate::client::{FrameOutput, Outgoing};
+use planet_client::{FrameOutput, Outgoing};
 use planet_core::codec::{ColourCodec, ElevationCodec};
 use planet_core::cube::{sample_coord, FaceCoord};
 use planet_core::format::{encode_record, ChildRef, Header, Tree, TreeInfo, SUPERBLOCK_LEN};
@@ -91,29 +91,6 @@ fn elevation_grid(b: BlockId, w: usize) -> Vec<i16> {
     g
 }
 
-/// Largest deviation of a full elevation grid from the bilinear surface of
-/// its LOD 1 (the error of drawing the first LOD).
-fn first_lod_error(g: &[i16], w: usize) -> f32 {
-    let side = w + 1;
-    let at = |i: usize, j: usize| g[j * side + i] as f64;
-    let mut e: f64 = 0.0;
-    for j in 0..side {
-        for i in 0..side {
-            let p = match (i % 2, j % 2) {
-                (0, 0) => continue,
-                (1, 0) => (at(i - 1, j) + at(i + 1, j)) / 2.0,
-                (0, 1) => (at(i, j - 1) + at(i, j + 1)) / 2.0,
-                _ => {
-                    (at(i - 1, j - 1) + at(i + 1, j - 1) + at(i - 1, j + 1) + at(i + 1, j + 1))
-                        / 4.0
-                }
-            };
-            e = e.max((at(i, j) - p).abs());
-        }
-    }
-    e as f32
-}
-
 struct Builder {
     cfg: TestDbConfig,
     file: Vec<u8>,
@@ -149,7 +126,7 @@ impl Builder {
         let r = ChildRef {
             offset,
             size,
-            error: first_lod_error(&g, w),
+            error: lod::elevation_lod_error(&g, w) as f32,
             // Analytic data between samples can exceed the sampled range.
             min_elevation: lo - 50.0,
             max_elevation: hi + 50.0,

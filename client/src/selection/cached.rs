@@ -1,372 +1,16 @@
-//! Adaptive LOD selection: one traversal of both trees per frame.
-//!
-//! Implements the selection part of thesis Alg. 3.1 (§3.6, see
-//! docs/REFERENCES.md): for every block compute visibility and importance, choose the LOD
-//! to render, and trigger refine / split / merge requests (§3.6.4, Eq. 3.4):
-//!
-//! - visible leaf whose selected LOD is finer than its last: refine
-//!   (request importance `1 − importance`); it is drawn at the nearest
-//!   available LOD meanwhile;
-//! - visible fully loaded leaf with `importance < −1`: split (importance
-//!   `−importance`); when a neighbour is already the maximum level
-//!   difference coarser (§4.3.3), that neighbour is forced to refine or
-//!   split instead, with this block's importance, ignoring its visibility;
-//! - split block with `ceil(importance) ≥ 1` whose children are leaves:
-//!   merge (importance `importance`), visible or not. Invisible blocks
-//!   trigger nothing else (§3.6.1).
-//!
-//! Colour blocks use the visibility of the elevation block with the same id
-//! (§4.4.3) and their own block width in the importance. Constraints are
-//! checked here (trigger time) and again when executing.
-//!
-//! The draw list carries, per edge, the neighbour's drawn LOD and
-//! `lodDiff = (neighbor.lod − this.lod) + (this.level − neighbor.level)`
-//! (erratum of Thesis §4.3.1, docs/REFERENCES.md): the block adapts on that edge
-//! when it is positive; split (finer) or invisible neighbours give `None`.
+//! The cached selection: [`Selector`], the traversal of [`super::select`]
+//! over a flat, incrementally patched copy of the trees (see [`super`]).
 
 use crate::refinement::{Footprint, Kind, Measure, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
-use crate::tree::{
-    Blocked, ChangeKind, FastMap, LinkedTree, PartialTree, TreeChange, TreeChanges, TreeStamp,
-};
+use crate::tree::{ChangeKind, LinkedTree, PartialTree, TreeChange, TreeChanges, TreeStamp};
 use crate::visibility::{BlockBounds, View};
 use glam::DVec3;
 use planet_core::format::{ChildRef, Tree};
 use planet_core::{BlockId, Edge, Face};
 use std::sync::Arc;
 
-/// A neighbour's LOD across one edge of a drawn block.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct NeighbourLod {
-    /// The neighbouring (same-level or coarser) leaf.
-    pub block: BlockId,
-    /// Its drawn LOD.
-    pub lod: u8,
-    /// `(neighbor.lod − this.lod) + (this.level − neighbor.level)`; the
-    /// block skips samples on this edge when positive.
-    pub lod_diff: i32,
-}
-
-/// The colour block textured onto a drawn elevation block (its bound block
-/// or the nearest colour ancestor, §4.4.1).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ColourBinding {
-    /// The colour leaf.
-    pub block: BlockId,
-    /// Its drawn LOD.
-    pub lod: u8,
-}
-
-/// A block to draw this frame.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DrawBlock {
-    /// The elevation leaf.
-    pub block: BlockId,
-    /// The LOD to draw (0 full, 1 first).
-    pub lod: u8,
-    /// Per edge (`Edge::ALL` order: left, top, right, bottom).
-    pub neighbours: [Option<NeighbourLod>; 4],
-    /// The colour to use, when the database has colour.
-    pub colour: Option<ColourBinding>,
-    /// The block's importance.
-    pub importance: f64,
-    /// Screen-space error in pixels at the drawn LOD (capped at the
-    /// viewport height).
-    pub screen_error: f64,
-    /// Approximate screen area of the block in pixels (its footprint's
-    /// side projected at its distance, squared, at most the viewport): the
-    /// weight of its error in the per-pixel mean.
-    pub screen_area: f64,
-}
-
-/// The result of one traversal.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Selection {
-    /// Visible elevation leaves with their LODs.
-    pub draw: Vec<DrawBlock>,
-    /// Triggered load requests.
-    pub loads: Vec<LoadRequest>,
-    /// Triggered splits and merges.
-    pub ops: Vec<TreeOp>,
-    /// Triangles of the draw list.
-    pub triangles: u64,
-}
-
-struct Ctx<'a> {
-    tree: &'a PartialTree,
-    out: Selection,
-}
-
-/// Select the LODs to draw and trigger requests for one frame, with the
-/// refinement test and request order of `refiner`
-/// ([`crate::refinement`]).
-pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
-    let mut cx = Ctx {
-        tree,
-        out: Selection::default(),
-    };
-    let et = tree.elevation();
-    let ew = et.width as f64;
-    // Elevation, per node: visibility and this frame's state (split, or
-    // leaf with its drawn LOD when visible), for colour and neighbours.
-    let mut info: FastMap<BlockId, NodeFrame> = FastMap::default();
-    info.reserve(et.len());
-    let mut stack: Vec<(BlockId, bool)> = Vec::with_capacity(64);
-    for f in Face::ALL {
-        stack.push((BlockId::root(f), true));
-        while let Some((id, parent_visible)) = stack.pop() {
-            let Some(n) = et.get(&id) else { continue };
-            let Some(b) = n.bounds.as_ref() else { continue };
-            let visible = parent_visible && view.is_visible(b);
-            let (err1, err0) = (n.record.error as f64, n.child_error());
-            let m = refiner.measure(Kind::Elevation, &Footprint::of(b), ew, err1, err0);
-            if n.split {
-                info.insert(
-                    id,
-                    NodeFrame {
-                        visible,
-                        split: true,
-                        drawn: None,
-                    },
-                );
-                if let Some(p) = refiner.merge(&m) {
-                    if tree.can_merge(Tree::Elevation, &id).is_ok()
-                        && !colour_holds_split(tree, refiner, &id, &Footprint::of(b))
-                    {
-                        cx.out.ops.push(TreeOp {
-                            kind: OpKind::Merge,
-                            tree: Tree::Elevation,
-                            block: id,
-                            importance: p,
-                        });
-                    }
-                }
-                stack.extend(id.children().map(|c| (c, visible)));
-                continue;
-            }
-            let d = refiner.leaf(&m, n.lod);
-            let lod = d.lod.max(n.lod);
-            let lod = if visible
-                && lod == 1
-                && n.lod == 0
-                && colour_holds_split(tree, refiner, &id, &Footprint::of(b))
-            {
-                0
-            } else {
-                lod
-            };
-            info.insert(
-                id,
-                NodeFrame {
-                    visible,
-                    split: false,
-                    drawn: visible.then_some(lod),
-                },
-            );
-            if !visible {
-                continue;
-            }
-            if d.load {
-                let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
-                cx.load(Tree::Elevation, id, p, false);
-            } else if d.split && n.can_split_data().is_ok() {
-                let p = refiner.split_priority(&m, id.level, b.centre);
-                cx.trigger_split(Tree::Elevation, id, p, 0);
-            }
-            let error = if lod == 1 { err1 } else { err0 };
-            let sse = refiner.drawn_error(&m, error);
-            let area = refiner.drawn_area(&m, b.radius);
-            cx.draw(id, lod, et.width, d.importance, (sse, area));
-        }
-    }
-    // Colour tree.
-    let mut colour_drawn: FastMap<BlockId, u8> = FastMap::default();
-    if let Some(ct) = tree.colour() {
-        let cw = ct.width as f64;
-        for f in Face::ALL {
-            stack.push((BlockId::root(f), true));
-            while let Some((id, _)) = stack.pop() {
-                let Some(n) = ct.get(&id) else { continue };
-                let Some(b) = et.get(&id).and_then(|e| e.bounds.as_ref()) else {
-                    continue;
-                };
-                let visible = info.get(&id).is_some_and(|i| i.visible);
-                let (err1, err0) = (n.record.error as f64, n.child_error());
-                let m = refiner.measure(Kind::Colour, &Footprint::of(b), cw, err1, err0);
-                if n.split {
-                    if let Some(p) = refiner.merge(&m) {
-                        if tree.can_merge(Tree::Colour, &id).is_ok() {
-                            cx.out.ops.push(TreeOp {
-                                kind: OpKind::Merge,
-                                tree: Tree::Colour,
-                                block: id,
-                                importance: p,
-                            });
-                        }
-                    }
-                    stack.extend(id.children().map(|c| (c, true)));
-                    continue;
-                }
-                let d = refiner.leaf(&m, n.lod);
-                colour_drawn.insert(id, d.lod.max(n.lod));
-                if !visible {
-                    continue;
-                }
-                if d.load {
-                    let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
-                    cx.load(Tree::Colour, id, p, false);
-                } else if d.split && n.can_split_data().is_ok() {
-                    let p = refiner.split_priority(&m, id.level, b.centre);
-                    cx.split_colour(id, p);
-                }
-            }
-        }
-    }
-    // Neighbour LODs and colour bindings.
-    let colour = tree.colour();
-    for d in cx.out.draw.iter_mut() {
-        for (k, e) in Edge::ALL.iter().enumerate() {
-            d.neighbours[k] = neighbour_lod(&info, &d.block, d.lod, *e);
-        }
-        d.colour = colour
-            .and_then(|c| c.covering(&d.block))
-            .map(|c| ColourBinding {
-                block: c.id,
-                lod: colour_drawn.get(&c.id).copied().unwrap_or(c.lod),
-            });
-    }
-    cx.out
-}
-
-/// One elevation node's state in this frame's traversal.
-#[derive(Clone, Copy)]
-struct NodeFrame {
-    visible: bool,
-    split: bool,
-    /// Drawn LOD (visible leaves).
-    drawn: Option<u8>,
-}
-
-/// The neighbour across `edge`: the deepest traversed node covering the
-/// same-level neighbour (as [`crate::tree::LinkedTree::neighbour`], every node being
-/// traversed), looked up in the frame's map (one map for existence,
-/// split state and drawn LOD).
-fn neighbour_lod(
-    info: &FastMap<BlockId, NodeFrame>,
-    id: &BlockId,
-    lod: u8,
-    edge: Edge,
-) -> Option<NeighbourLod> {
-    let same = id.neighbour(edge).0;
-    let (nid, nb) = (0..=same.level).rev().find_map(|l| {
-        let a = same.ancestor(l);
-        info.get(&a).map(|n| (a, n))
-    })?;
-    if nb.split {
-        return None;
-    }
-    let nlod = nb.drawn?;
-    Some(NeighbourLod {
-        block: nid,
-        lod: nlod,
-        lod_diff: (nlod as i32 - lod as i32) + (id.level as i32 - nid.level as i32),
-    })
-}
-
-impl Ctx<'_> {
-    /// Adds an elevation block to the draw list at `lod` (neighbours and
-    /// colour are filled in later) and counts its triangles: `2·w²`, with
-    /// `w` the block width for `lod` 0 and half of it for `lod` 1.
-    fn draw(&mut self, block: BlockId, lod: u8, width: usize, importance: f64, sse: (f64, f64)) {
-        let w = if lod == 0 { width } else { width / 2 } as u64;
-        self.out.triangles += 2 * w * w;
-        self.out.draw.push(DrawBlock {
-            block,
-            lod,
-            neighbours: [None; 4],
-            colour: None,
-            importance,
-            screen_error: sse.0,
-            screen_area: sse.1,
-        });
-    }
-
-    fn load(&mut self, tree: Tree, block: BlockId, importance: f64, forced: bool) {
-        let Some(n) = self.tree.tree(tree).and_then(|t| t.get(&block)) else {
-            return;
-        };
-        self.out.loads.push(LoadRequest {
-            tree,
-            block,
-            record: n.record,
-            importance,
-            forced,
-        });
-    }
-
-    /// Split colour leaf `id` (LOD 0 loaded, with children); when its
-    /// elevation block is not split (the binding of §4.4.1), refine the
-    /// elevation block instead, so that colour can refine by texel size
-    /// where the geometry alone would not: load its LOD 0, or split it.
-    fn split_colour(&mut self, id: BlockId, importance: f64) {
-        match self.tree.can_split(Tree::Colour, &id) {
-            Ok(()) => self.out.ops.push(TreeOp {
-                kind: OpKind::Split,
-                tree: Tree::Colour,
-                block: id,
-                importance,
-            }),
-            Err(Blocked::Binding) => {
-                let Some(e) = self.tree.elevation().get(&id) else {
-                    return;
-                };
-                if e.split {
-                    return;
-                }
-                match e.can_split_data() {
-                    Ok(()) => self.trigger_split(Tree::Elevation, id, importance, 0),
-                    Err(Blocked::NotLoaded) => self.load(Tree::Elevation, id, importance, false),
-                    Err(_) => {}
-                }
-            }
-            Err(_) => {}
-        }
-    }
-
-    /// Trigger a split, or force the neighbours that block it (§4.3.3).
-    fn trigger_split(&mut self, tree: Tree, id: BlockId, importance: f64, depth: u8) {
-        match self.tree.can_split(tree, &id) {
-            Ok(()) => self.out.ops.push(TreeOp {
-                kind: OpKind::Split,
-                tree,
-                block: id,
-                importance,
-            }),
-            Err(Blocked::NeighbourTooCoarse(_)) if depth < 32 => {
-                let Some(t) = self.tree.tree(tree) else {
-                    return;
-                };
-                for e in Edge::ALL {
-                    let Some(nb) = t.neighbour(&id, e) else {
-                        continue;
-                    };
-                    if nb.split || nb.id.level + self.tree.max_level_difference() > id.level {
-                        continue;
-                    }
-                    let nid = nb.id;
-                    match nb.can_split_data() {
-                        Ok(()) => self.trigger_split(tree, nid, importance, depth + 1),
-                        Err(Blocked::NotLoaded) if nb.lod == 1 => {
-                            self.load(tree, nid, importance, true)
-                        }
-                        Err(_) => {}
-                    }
-                }
-            }
-            Err(_) => {}
-        }
-    }
-}
+use super::{colour_holds_split, ColourBinding, Ctx, DrawBlock, NeighbourLod, Selection};
 
 /// No node (index sentinel).
 const NONE: u32 = u32::MAX;
@@ -374,7 +18,7 @@ const NONE: u32 = u32::MAX;
 const NOT_DRAWN: u8 = u8::MAX;
 
 /// Per-frame inputs of one elevation node of the cached flat tree
-/// (pre-order, the traversal order of [`select`]), kept small: the frame
+/// (pre-order, the traversal order of [`select`](super::select)), kept small: the frame
 /// loop streams through them.
 #[derive(Debug, Clone, Copy)]
 struct Hot {
@@ -426,7 +70,7 @@ enum Binding {
     Node(u32),
     /// A colour node that is split or that the traversal does not reach
     /// (only in a tree whose binding invariant is broken): its LOD is read
-    /// from the tree, as [`select`] does.
+    /// from the tree, as [`select`](super::select) does.
     Tree(BlockId),
 }
 
@@ -466,7 +110,7 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 /// Alg. 3.1): the work per frame is a linear pass over compact arrays.
 ///
 /// On a valid tree ([`PartialTree::validate`]) it gives exactly the
-/// [`Selection`] of [`select`] (same draw list, loads and operations, in the
+/// [`Selection`] of [`select`](super::select) (same draw list, loads and operations, in the
 /// same order, bit for bit; `client/tests/selector.rs` compares them frame
 /// by frame while the tree grows, is refined, splits and merges, and the
 /// camera moves, turns and stands still), faster:
@@ -645,7 +289,7 @@ impl Selector {
     }
 
     /// The deepest node of the flat tree containing `target`, descending
-    /// from node `from` (which contains it): what [`select`]'s lookups find
+    /// from node `from` (which contains it): what [`select`](super::select)'s lookups find
     /// among the traversed nodes.
     fn covering_from(&self, mut from: u32, target: &BlockId) -> u32 {
         if from as usize >= self.ids.len() {
@@ -842,7 +486,7 @@ impl Selector {
         self.roots = [NONE; 6];
     }
 
-    /// Flatten the trees (pre-order, as [`select`] traverses them). One
+    /// Flatten the trees (pre-order, as [`select`](super::select) traverses them). One
     /// hash lookup per node (the tree's own map); neighbours, colour nodes
     /// and bindings follow from the flat parent/children links.
     fn rebuild(&mut self, tree: &PartialTree) {
@@ -1210,7 +854,7 @@ impl Selector {
     }
 
     /// Select the LODs to draw and trigger requests for one frame: the same
-    /// result as [`select`]`(tree, view, qf)`.
+    /// result as [`select`](super::select)`(tree, view, qf)`.
     pub fn select(&mut self, tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
         self.update(tree);
         let mut draw = std::mem::take(&mut self.spare_draw);
@@ -1533,34 +1177,4 @@ fn exact_visible(view: &View, c: &mut Cold) -> bool {
         }
     }
     v
-}
-
-/// Whether the colour leaf with the id of an elevation block wants its
-/// children (its LOD 0 is loaded, has children, and its texels are coarser
-/// than the tolerance). Colour can split only under a split elevation block
-/// (§4.4.1's binding), so a split elevation block then stays split, and a
-/// leaf whose LOD 0 colour asked for ([`Ctx::split_colour`]) is drawn at
-/// LOD 0: it splits in the next frame, its children drawn at LOD 1 from the
-/// same samples and triangles.
-pub(crate) fn colour_holds_split(
-    tree: &PartialTree,
-    refiner: &Refiner,
-    id: &BlockId,
-    fp: &Footprint,
-) -> bool {
-    let Some(ct) = tree.colour() else {
-        return false;
-    };
-    let Some(c) = ct.get(id) else { return false };
-    if c.split || c.can_split_data().is_err() {
-        return false;
-    }
-    let m = refiner.measure(
-        Kind::Colour,
-        fp,
-        ct.width as f64,
-        c.record.error as f64,
-        c.child_error(),
-    );
-    refiner.leaf(&m, c.lod).split
 }
