@@ -21,4 +21,21 @@ for crate in planet-client planet-protocol planet-core; do
     echo "check-deps: $crate: no ${forbidden//|/, }"
   fi
 done
+# Thin binaries over single-job libraries: the renderer library carries no
+# window, server, preprocessor or CLI; the server library no CLI.
+check() {
+  local crate=$1 forbidden=$2 why=$3 tree bad
+  tree=$(cargo tree -p "$crate" -e normal --prefix none --offline 2>/dev/null \
+    || cargo tree -p "$crate" -e normal --prefix none)
+  bad=$(printf '%s\n' "$tree" | awk '{print $1}' | grep -Ex "$forbidden" | sort -u || true)
+  if [ -n "$bad" ]; then
+    echo "check-deps: $crate depends on $(echo $bad | tr ' ' ',') ($why)" >&2
+    status=1
+  else
+    echo "check-deps: $crate: no ${forbidden//|/, }"
+  fi
+}
+check planet-render 'winit|planet-server|planet-preprocess|planet-session|planet-linksim|tokio|clap|anyhow' \
+  'the renderer library depends on core and wgpu only'
+check planet-server 'clap|anyhow|tracing-subscriber|mimalloc' 'CLI dependencies belong to planet-server-bin'
 exit $status

@@ -39,8 +39,11 @@ use glam::{DMat4, DVec3, DVec4};
 use planet_core::cube::FaceCoord;
 use planet_core::{BlockId, Datum};
 
-/// Smallest near-plane distance in metres.
-pub const NEAR_MIN: f64 = 0.5;
+/// The segment/ball test of the horizon planes, shared with core.
+pub use planet_core::horizon::segment_hits_ball;
+/// Smallest near-plane distance in metres (the renderer's: one formula,
+/// one clamp).
+pub use planet_core::horizon::MIN_NEAR as NEAR_MIN;
 
 /// A perspective camera in planet-centred metres.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -90,48 +93,14 @@ impl Camera {
 }
 
 /// Horizon-fitted near and far distances (thesis Eq. 4.3), for min and max
-/// planet radii `r_min` (‖OT‖) and `r_max` (‖OM‖).
+/// planet radii `r_min` (‖OT‖) and `r_max` (‖OM‖): the formula of
+/// [`planet_core::horizon`], with the corner half-angle of this camera.
 pub fn near_far(camera: &Camera, r_min: f64, r_max: f64) -> (f64, f64) {
     let (f, _, _) = camera.basis();
-    let v = camera.eye;
-    let vo = v.length();
-    let r_max = r_max.max(r_min);
     let tan_y = (camera.fov_y * 0.5).tan().abs();
-    let tan_c = tan_y * (1.0 + camera.aspect * camera.aspect).sqrt();
-    let cos_c = 1.0 / (1.0 + tan_c * tan_c).sqrt();
-    let near = ((vo - r_max) * cos_c).max(NEAR_MIN);
-    if vo.partial_cmp(&r_min) != Some(std::cmp::Ordering::Greater) || !vo.is_finite() {
-        // Inside the min sphere (or degenerate): no horizon, see everything.
-        let far = (vo + r_max).max(near * 2.0);
-        return (NEAR_MIN, if far.is_finite() { far } else { f64::MAX });
-    }
-    let vhat = v / vo;
-    let cos_a = f.dot(-vhat).clamp(-1.0, 1.0);
-    let sin_a = f.cross(vhat).length().min(1.0);
-    let vt = ((vo - r_min) * (vo + r_min)).sqrt();
-    let tm = ((r_max - r_min) * (r_max + r_min)).sqrt();
-    let ring = (vt + tm) * ((vt / vo) * cos_a + (r_min / vo) * sin_a);
-    let mut far = ring.max(vo - r_min);
-    // The max-sphere point farthest along `f`, when it is visible.
-    let p = f * r_max;
-    if !segment_hits_ball(v, p, r_min) {
-        far = far.max(f.dot(p - v));
-    }
-    let far = far * (1.0 + 1e-9) + 1.0;
-    (near.min(far * 0.5), far)
-}
-
-/// Whether the segment `a → b` passes strictly inside the ball of radius `r`
-/// centred on the origin.
-pub fn segment_hits_ball(a: DVec3, b: DVec3, r: f64) -> bool {
-    let d = b - a;
-    let dd = d.length_squared();
-    let t = if dd > 0.0 {
-        (-a.dot(d) / dd).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    (a + d * t).length() < r
+    let half_diagonal = (tan_y * (1.0 + camera.aspect * camera.aspect).sqrt()).atan();
+    let p = planet_core::horizon::horizon_planes(camera.eye, f, r_min, r_max, half_diagonal);
+    (p.near, p.far)
 }
 
 /// Conservative bounds of a block: bounding points, axis-aligned box, centre
@@ -643,39 +612,6 @@ mod tests {
     }
 
     proptest! {
-        /// Brute force: any point on (or inside the shell up to) the max
-        /// sphere that the min ball does not hide and that is in front of the
-        /// eye has a depth no greater than the far plane.
-        #[test]
-        fn far_plane_never_culls_visible_points(
-            alt in prop_oneof![-2.0e6f64..0.0, 0.0f64..1.0e4, 1.0e4f64..1.0e8],
-            ea in -1.5f64..1.5, eb in -3.2f64..3.2,
-            fa in -1.5f64..1.5, fb in -3.2f64..3.2,
-            pts in proptest::collection::vec((-1.5f64..1.5, -3.2f64..3.2, 0.0f64..1.0), 64),
-            relief in 0.0f64..20_000.0,
-        ) {
-            let r_min = R - relief;
-            let r_max = R + relief;
-            let eye = unit(ea, eb) * (R + alt);
-            let mut cam = Camera::look_at(eye, eye + unit(fa, fb), DVec3::Z);
-            cam.fov_y = 1.0;
-            let (near, far) = near_far(&cam, r_min, r_max);
-            prop_assert!(near.is_finite() && far.is_finite() && near > 0.0 && far > near);
-            let (f, _, _) = cam.basis();
-            for (a, b, h) in pts {
-                let p = unit(a, b) * (r_min + (r_max - r_min) * h.sqrt());
-                if segment_hits_ball(eye, p, r_min) { continue; }
-                let depth = f.dot(p - eye);
-                prop_assert!(depth <= far, "depth {depth} far {far}");
-            }
-            // The ring's farthest point and points toward the horizon.
-            for k in 0..64 {
-                let p = unit(fa + (k as f64 - 32.0) * 0.02, fb) * r_max;
-                if segment_hits_ball(eye, p, r_min) { continue; }
-                prop_assert!(f.dot(p - eye) <= far);
-            }
-        }
-
         /// The horizon test never hides a point that brute force sees.
         #[test]
         fn horizon_test_is_conservative(

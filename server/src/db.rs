@@ -35,7 +35,7 @@ use std::sync::{Arc, RwLock};
 
 use bytes::Bytes;
 use memmap2::Mmap;
-use planet_core::format::{Header, Superblock, SUPERBLOCK_LEN};
+use planet_core::format::{Superblock, SUPERBLOCK_LEN};
 
 use crate::config::StorageMode;
 
@@ -208,31 +208,12 @@ impl MappedDb {
         } else {
             None
         };
-        let mut sb = [0u8; SUPERBLOCK_LEN];
-        file.read_exact_at(&mut sb, 0).map_err(io)?;
-        let superblock = Superblock::decode(&sb).map_err(undecodable("superblock"))?;
-        if superblock.file_len != len {
-            return Err(invalid(format!(
-                "truncated or extended: superblock says {} bytes, file has {len}",
-                superblock.file_len
-            )));
-        }
-        if superblock.header_len as usize > planet_protocol::MAX_HEADER_LEN {
-            return Err(invalid(format!(
-                "header of {} bytes exceeds the protocol limit of {}",
-                superblock.header_len,
-                planet_protocol::MAX_HEADER_LEN
-            )));
-        }
-        let end = superblock
-            .header_offset
-            .checked_add(u64::from(superblock.header_len))
-            .filter(|&e| e <= len)
-            .ok_or_else(|| invalid("header outside the file".into()))?;
-        let mut header = vec![0u8; (end - superblock.header_offset) as usize];
-        file.read_exact_at(&mut header, superblock.header_offset)
-            .map_err(io)?;
-        Header::decode(&header, Some(len)).map_err(undecodable("header"))?;
+        // The one validation of a database's head (core), with the
+        // protocol's Welcome limit on the header.
+        let head =
+            planet_core::format::read_validated_head(&file, len, planet_protocol::MAX_HEADER_LEN)
+                .map_err(undecodable("superblock and header"))?;
+        let (superblock, header) = (head.superblock, head.header_bytes);
         Ok(MappedDb {
             name: name.to_string(),
             path: path.to_path_buf(),
@@ -390,5 +371,18 @@ impl DbSlot {
             }
             Err(e) => ReloadOutcome::Failed(e.to_string()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The header travels whole in the Welcome: the format may not allow a
+    /// header the protocol refuses, nor the other way round.
+    #[test]
+    fn format_and_protocol_agree_on_the_header_limit() {
+        assert_eq!(
+            planet_core::format::MAX_HEADER_LEN,
+            planet_protocol::MAX_HEADER_LEN
+        );
     }
 }

@@ -5,11 +5,11 @@
 //!   client model's tests without files or network.
 //! - [`converge`]: one client frame against the fake server, when a client
 //!   is idle, and the "step until idle" loop.
-//! - [`harness`] (feature `harness`): an in-process `planet-server` on
+//! - `harness` (feature `harness`): an in-process `planet-server` on
 //!   loopback with a development certificate, the pinned session
-//!   configuration, small procedural databases, the tokio [`runtime`] and
+//!   configuration, small procedural databases, the tokio `runtime` and
 //!   independent geometric checks (horizon, surface elevation).
-//! - [`fuzzing`] (feature `fuzzing`): the fuzz targets' bodies, called by
+//! - `fuzzing` (feature `fuzzing`): the fuzz targets' bodies, called by
 //!   `fuzz/fuzz_targets/*.rs` and replayed by the server's
 //!   `fuzz_regressions` test.
 #![forbid(unsafe_code)]

@@ -1,7 +1,7 @@
 //! Adaptive LOD selection: one traversal of both trees per frame.
 //!
-//! Implements the selection part of thesis Alg. 3.1 (§3.6, thesis-notes
-//! §6.6): for every block compute visibility and importance, choose the LOD
+//! Implements the selection part of thesis Alg. 3.1 (§3.6, see
+//! docs/REFERENCES.md): for every block compute visibility and importance, choose the LOD
 //! to render, and trigger refine / split / merge requests (§3.6.4, Eq. 3.4):
 //!
 //! - visible leaf whose selected LOD is finer than its last: refine
@@ -21,12 +21,12 @@
 //!
 //! The draw list carries, per edge, the neighbour's drawn LOD and
 //! `lodDiff = (neighbor.lod − this.lod) + (this.level − neighbor.level)`
-//! (erratum of §4.3.1, thesis-notes §7.4): the block adapts on that edge
+//! (erratum of Thesis §4.3.1, docs/REFERENCES.md): the block adapts on that edge
 //! when it is positive; split (finer) or invisible neighbours give `None`.
 //!
 //! Two implementations of the one traversal, one file each:
 //!
-//! - [`reference`]: [`select`], the traversal as the thesis states it,
+//! - [`reference`](mod@reference): [`select`], the traversal as the thesis states it,
 //!   recursive over the linked trees (the reference the tests compare with);
 //! - [`cached`]: [`Selector`], the same selection bit for bit over a cached
 //!   flat form of the trees, the one the client runs.

@@ -4,7 +4,7 @@
 //! frame (deliver what arrived, select, request), turn its draw list into
 //! the renderer's ([`SceneBuilder`], meshes built on worker threads), draw
 //! the planet into an offscreen `Rgba8UnormSrgb` target with the shared
-//! [`Renderer`], then compose it with the text readout onto the surface
+//! [`planet_render::Renderer`], then compose it with the text readout onto the surface
 //! (whatever its format) in one full-screen pass.
 //!
 //! Controls: WASD / arrows move (speed ∝ altitude, Shift ×5), mouse drag
