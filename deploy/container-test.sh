@@ -382,7 +382,7 @@ echo "  refused: unauthorized (planet_handshakes_total{outcome=\"unauthorized\"}
 
 step "SIGTERM with a client connected (then the server restarted)"
 mkdir -p "$TMP/drain"
-VIEW_BG=1 VIEW_LOG=planet_client=info VIEW_TRAJECTORY=orbit view drain earth --token "$(cat "$ETC/tokens/public")" \
+VIEW_BG=1 VIEW_LOG=planet_session=info VIEW_TRAJECTORY=orbit view drain earth --token "$(cat "$ETC/tokens/public")" \
   --duration 60 --fps 2 --max-sse 0.05 >"$TMP/drain.out" 2>"$TMP/drain.err"
 drain_view=$view_pid
 for _ in $(seq 100); do
