@@ -310,6 +310,7 @@ pub fn camera_from_keyframe(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::visibility::Basis;
 
     #[test]
     fn builtins_parse_and_files_match() {
@@ -384,7 +385,11 @@ mod tests {
                 pitch_deg: p,
             };
             let c = camera_from_keyframe(&k, &d, 1.0, 1.5, 720.0);
-            let (f, r, u) = c.basis();
+            let Basis {
+                forward: f,
+                right: r,
+                up: u,
+            } = c.basis();
             assert!(f.is_finite() && r.is_finite() && u.is_finite());
             assert!(c.forward.dot(c.up).abs() < 1e-9);
             assert!((c.up.length() - 1.0).abs() < 1e-9);

@@ -45,61 +45,20 @@ pub use planet_core::horizon::segment_hits_ball;
 /// one clamp).
 pub use planet_core::horizon::MIN_NEAR as NEAR_MIN;
 
-/// A perspective camera in planet-centred metres.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Camera {
-    /// Eye position, planet-centred, metres.
-    pub eye: DVec3,
-    /// View direction (need not be normalised).
-    pub forward: DVec3,
-    /// Approximate up vector (re-orthogonalised against `forward`).
-    pub up: DVec3,
-    /// Vertical field of view in radians.
-    pub fov_y: f64,
-    /// Width / height.
-    pub aspect: f64,
-    /// Viewport height in pixels (for the screen-space error).
-    pub viewport_height_px: f64,
-}
-
-impl Camera {
-    /// A camera at `eye` looking at `target`, with `up` as the approximate up.
-    pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> Camera {
-        Camera {
-            eye,
-            forward: target - eye,
-            up,
-            fov_y: 60f64.to_radians(),
-            aspect: 16.0 / 9.0,
-            viewport_height_px: 1080.0,
-        }
-    }
-
-    /// Orthonormal (forward, right, up) basis; falls back to sane axes when
-    /// `forward` is degenerate or parallel to `up`.
-    pub fn basis(&self) -> (DVec3, DVec3, DVec3) {
-        let f = self.forward.try_normalize().unwrap_or(DVec3::NEG_Z);
-        let mut r = f.cross(self.up);
-        if r.length_squared() < 1e-20 || !r.is_finite() {
-            r = f.cross(DVec3::X);
-            if r.length_squared() < 1e-20 {
-                r = f.cross(DVec3::Y);
-            }
-        }
-        let r = r.normalize();
-        let u = r.cross(f);
-        (f, r, u)
-    }
-}
+/// The camera of the workspace ([`planet_core::camera`]).
+pub use planet_core::camera::{Basis, Camera};
 
 /// Horizon-fitted near and far distances (thesis Eq. 4.3), for min and max
 /// planet radii `r_min` (‖OT‖) and `r_max` (‖OM‖): the formula of
 /// [`planet_core::horizon`], with the corner half-angle of this camera.
 pub fn near_far(camera: &Camera, r_min: f64, r_max: f64) -> (f64, f64) {
-    let (f, _, _) = camera.basis();
-    let tan_y = (camera.fov_y * 0.5).tan().abs();
-    let half_diagonal = (tan_y * (1.0 + camera.aspect * camera.aspect).sqrt()).atan();
-    let p = planet_core::horizon::horizon_planes(camera.eye, f, r_min, r_max, half_diagonal);
+    let p = planet_core::horizon::horizon_planes(
+        camera.eye,
+        camera.basis().forward,
+        r_min,
+        r_max,
+        camera.half_diagonal_fov(),
+    );
     (p.near, p.far)
 }
 
@@ -271,7 +230,11 @@ impl View {
     /// radii `r_min` and `r_max`.
     pub fn new(camera: &Camera, r_min: f64, r_max: f64) -> View {
         let (near, far) = near_far(camera, r_min, r_max);
-        let (f, r, u) = camera.basis();
+        let Basis {
+            forward: f,
+            right: r,
+            up: u,
+        } = camera.basis();
         let ty = (camera.fov_y * 0.5).tan().abs();
         let tx = ty * camera.aspect.abs();
         let planes = [
@@ -327,7 +290,11 @@ impl View {
     /// The eye-relative view-projection (depth 0..1, right-handed) matching
     /// the frustum, for a renderer that draws in eye-relative coordinates.
     pub fn view_projection(&self) -> DMat4 {
-        let (f, r, u) = self.camera.basis();
+        let Basis {
+            forward: f,
+            right: r,
+            up: u,
+        } = self.camera.basis();
         let view = DMat4::from_cols(
             DVec4::new(r.x, u.x, -f.x, 0.0),
             DVec4::new(r.y, u.y, -f.y, 0.0),
@@ -660,7 +627,7 @@ mod tests {
         let cam = Camera::look_at(eye, eye + DVec3::Y, DVec3::X);
         let v = View::new(&cam, R - 100.0, R + 100.0);
         let m = v.view_projection();
-        let (f, _, _) = cam.basis();
+        let f = cam.basis().forward;
         let clip = |d: f64| {
             let c = m * (f * d).extend(1.0);
             c.z / c.w

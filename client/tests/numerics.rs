@@ -8,7 +8,9 @@
 use glam::DVec3;
 use planet_client::importance::{block_distance, importance, screen_space_error};
 use planet_client::quality::{QualityConfig, QualityController, QualityMode, QF_MAX, QF_MIN};
-use planet_client::visibility::{near_far, segment_hits_ball, BlockBounds, Camera, View, NEAR_MIN};
+use planet_client::visibility::{
+    near_far, segment_hits_ball, Basis, BlockBounds, Camera, View, NEAR_MIN,
+};
 use planet_core::cube::FaceCoord;
 use planet_core::{BlockId, Datum, Face};
 
@@ -238,7 +240,11 @@ fn near_far_never_cull_a_visible_surface_point() {
                             near.is_finite() && far.is_finite() && near >= NEAR_MIN && far > near,
                             "{near} {far}"
                         );
-                        let (f, r, u) = cam.basis();
+                        let Basis {
+                            forward: f,
+                            right: r,
+                            up: u,
+                        } = cam.basis();
                         let ty = (cam.fov_y * 0.5).tan();
                         let tx = ty * cam.aspect;
                         let mut deepest = 0.0f64;
@@ -386,7 +392,11 @@ fn visible_blocks_are_never_culled() {
                 let mut cam = Camera::look_at(eye, eye + dir, DVec3::Z);
                 cam.fov_y = fov_deg.to_radians();
                 let view = View::new(&cam, r_min, r_max);
-                let (f, r, u) = cam.basis();
+                let Basis {
+                    forward: f,
+                    right: r,
+                    up: u,
+                } = cam.basis();
                 let ty = (cam.fov_y * 0.5).tan();
                 let tx = ty * cam.aspect;
                 for (id, b) in &blocks {

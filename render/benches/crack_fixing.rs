@@ -14,9 +14,7 @@
 use planet_core::{BlockId, Datum, Edge, Face};
 use planet_render::mesh::sample_position;
 use planet_render::render::{COLOR_FORMAT, DEPTH_FORMAT};
-use planet_render::{
-    BlockMesh, CameraF64, DrawBlock, FrameTarget, HeadlessRenderer, RenderSettings,
-};
+use planet_render::{BlockMesh, Camera, DrawBlock, FrameTarget, HeadlessRenderer, RenderSettings};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
@@ -92,12 +90,14 @@ fn main() {
     let adapter = hr.adapter_name.clone();
     let blocks = scene(&datum);
     let a = datum.equatorial_radius();
-    let camera = CameraF64::look_at(
-        [2.2 * a, 1.3 * a, 1.6 * a],
-        [0.0; 3],
-        [0.0, 0.0, 1.0],
-        50f64.to_radians(),
-    );
+    let camera = Camera {
+        fov_y: 50f64.to_radians(),
+        ..Camera::look_at(
+            glam::DVec3::new(2.2, 1.3, 1.6) * a,
+            glam::DVec3::ZERO,
+            glam::DVec3::Z,
+        )
+    };
     let renderer = &mut hr.renderer;
     let make = |format, label| {
         renderer.device().create_texture(&wgpu::TextureDescriptor {

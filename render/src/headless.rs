@@ -2,7 +2,7 @@
 //! metrics, screenshots).
 
 use crate::render::{
-    CameraF64, DrawBlock, FrameTarget, Projection, RenderSettings, Renderer, COLOR_FORMAT,
+    Camera, DrawBlock, FrameTarget, Projection, RenderSettings, Renderer, COLOR_FORMAT,
     DEPTH_FORMAT,
 };
 use std::path::Path;
@@ -171,7 +171,7 @@ impl HeadlessRenderer {
     }
 
     /// Render `blocks` from `camera` and read back colour and depth.
-    pub fn render(&mut self, camera: &CameraF64, blocks: &[DrawBlock]) -> Result<Image, ViewError> {
+    pub fn render(&mut self, camera: &Camera, blocks: &[DrawBlock]) -> Result<Image, ViewError> {
         let (w, h) = (self.width, self.height);
         let cview = self
             .color

@@ -10,15 +10,15 @@
 //!   camera-relative vertices to one f32 rounding.
 //! - [`masks`]: the shared index masks per LOD, with the edge strips that
 //!   stitch a block to a coarser neighbour (no cracks, no T-junctions).
-//! - [`clip_planes`]: horizon-fitted near/far planes (thesis Eq. 4.3).
-//! - [`render`]: the wgpu 30 pipeline: camera-relative, reversed-Z, lighting,
+//! - [`render`]: the wgpu 30 pipeline: camera-relative, reversed-Z with the
+//!   horizon-fitted planes of [`planet_core::horizon`] (thesis Eq. 4.3) for
+//!   the core [`Camera`], lighting,
 //!   per-block colour textures (or an altitude ramp), GPU caches.
 //! - [`headless`]: offscreen rendering with colour and depth read-back.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod camera_relative;
-pub mod clip_planes;
 pub mod headless;
 pub mod masks;
 pub mod mesh;
@@ -27,6 +27,6 @@ pub mod render;
 pub use headless::{HeadlessRenderer, Image, ViewError};
 pub use mesh::BlockMesh;
 pub use render::{
-    BlockTexture, CameraF64, ColourRef, DepthMode, DrawBlock, FrameTarget, Projection,
-    RenderSettings, Renderer,
+    BlockTexture, Camera, ColourRef, DepthMode, DrawBlock, FrameTarget, Projection, RenderSettings,
+    Renderer,
 };

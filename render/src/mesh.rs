@@ -9,6 +9,7 @@
 //! f16 residual; camera-relative rendering adds `centre − eye` as two f32
 //! parts per block with one final rounding ([`crate::camera_relative`]).
 
+use glam::DVec3;
 use planet_core::cube::{normalize, plane_from_angle, sample_coord};
 use planet_core::{BlockId, Datum, Edge};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -220,12 +221,12 @@ impl BlockMesh {
         for j in 0..side {
             for i in 0..side {
                 let p = positions[j * side + i];
-                let rel = [p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]];
+                let rel = DVec3::from(p) - DVec3::from(centre);
                 let lod1 = i % 2 == 0 && j % 2 == 0;
                 if lod1 {
-                    radius =
-                        radius.max((rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2]).sqrt());
+                    radius = radius.max(rel.length());
                 }
+                let rel = rel.to_array();
                 // Central differences with the LOD's step; on the border
                 // with the neighbour's samples outside when known, else
                 // one-sided.
@@ -256,22 +257,15 @@ impl BlockMesh {
                 } else {
                     outside(Edge::Top, i)
                 };
-                let du = sub(
-                    hi_u.unwrap_or(at((i + st).min(w), j)),
-                    lo_u.unwrap_or(at(i.saturating_sub(st), j)),
-                );
-                let dv = sub(
-                    hi_v.unwrap_or(at(i, (j + st).min(w))),
-                    lo_v.unwrap_or(at(i, j.saturating_sub(st))),
-                );
-                let n = cross(du, dv);
-                let nl = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-                let normal = if nl > 0.0 && nl.is_finite() {
-                    [n[0] / nl, n[1] / nl, n[2] / nl]
-                } else {
+                let du = DVec3::from(hi_u.unwrap_or(at((i + st).min(w), j)))
+                    - DVec3::from(lo_u.unwrap_or(at(i.saturating_sub(st), j)));
+                let dv = DVec3::from(hi_v.unwrap_or(at(i, (j + st).min(w))))
+                    - DVec3::from(lo_v.unwrap_or(at(i, j.saturating_sub(st))));
+                let normal = match du.cross(dv).try_normalize() {
+                    Some(n) => n.to_array(),
                     // The sample's direction: `normalize(p)` is NaN when the
                     // point is at the planet centre (altitude = −radius).
-                    sample_position(&Datum::Sphere { radius: 1.0 }, id, w, i, j, 0.0)
+                    None => sample_position(&Datum::Sphere { radius: 1.0 }, id, w, i, j, 0.0),
                 };
                 let (pos, _) = crate::camera_relative::split_f32(rel);
                 vertices.push(Vertex {
@@ -293,18 +287,6 @@ impl BlockMesh {
             radius,
         }
     }
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
 }
 
 #[cfg(test)]

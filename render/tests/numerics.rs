@@ -13,11 +13,12 @@
 //! prints the measured worst cases (lines starting with `NUMERICS`).
 
 use planet_core::cube::FaceCoord;
+use planet_core::horizon::{ClipPlanes, MIN_NEAR};
 use planet_core::{BlockId, Datum, Face};
 use planet_render::camera_relative::{camera_relative, low_part_f32, SplitOffset};
-use planet_render::clip_planes::{horizon_planes, MIN_NEAR};
 use planet_render::mesh::{sample_position, BlockMesh};
-use planet_render::{CameraF64, Projection};
+use planet_render::render::Basis;
+use planet_render::{Camera, Projection};
 
 const W: usize = 64;
 
@@ -37,6 +38,29 @@ fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
+/// The core's horizon planes on this file's `[f64; 3]` vectors.
+fn horizon_planes(eye: [f64; 3], dir: [f64; 3], r_min: f64, r_max: f64, hd: f64) -> ClipPlanes {
+    planet_core::horizon::horizon_planes(eye.into(), dir.into(), r_min, r_max, hd)
+}
+
+/// A 16:9 camera (the renderer takes the aspect ratio from its target).
+fn camera(eye: [f64; 3], forward: [f64; 3], up: [f64; 3], fov_y: f64) -> Camera {
+    Camera {
+        eye: eye.into(),
+        forward: forward.into(),
+        up: up.into(),
+        fov_y,
+        aspect: 16.0 / 9.0,
+        viewport_height_px: 1080.0,
+    }
+}
+
+/// `(right, up, forward)` of a camera as arrays.
+fn basis(camera: &Camera) -> [[f64; 3]; 3] {
+    let Basis { right, up, forward } = camera.basis();
+    [right.to_array(), up.to_array(), forward.to_array()]
+}
+
 /// Column-major product, as `render/frame.rs` composes `proj · view`.
 fn mat_mul(a: [[f64; 4]; 4], b: [[f64; 4]; 4]) -> [[f64; 4]; 4] {
     let mut out = [[0.0; 4]; 4];
@@ -49,8 +73,8 @@ fn mat_mul(a: [[f64; 4]; 4], b: [[f64; 4]; 4]) -> [[f64; 4]; 4] {
 }
 
 /// The f64 view-projection exactly as `Renderer::encode` builds it.
-fn view_proj(camera: &CameraF64, proj: &Projection) -> [[f64; 4]; 4] {
-    let [r, u, f] = camera.basis();
+fn view_proj(camera: &Camera, proj: &Projection) -> [[f64; 4]; 4] {
+    let [r, u, f] = basis(camera);
     let view = [
         [r[0], u[0], -f[0], 0.0],
         [r[1], u[1], -f[1], 0.0],
@@ -146,14 +170,9 @@ fn camera_relative_f32_vertices_within_10_km() {
                         }
                     };
                     for (fwd, fov_deg) in [(down, 60.0f64), (horizon, 1.0), (horizon, 170.0)] {
-                        let cam = CameraF64 {
-                            position: eye,
-                            forward: fwd,
-                            up: ground,
-                            fov_y: fov_deg.to_radians(),
-                        };
+                        let cam = camera(eye, fwd, ground, fov_deg.to_radians());
                         let aspect = 16.0 / 9.0;
-                        let p = horizon_planes(eye, fwd, 1.0, 2.0, cam.half_diagonal_fov(aspect));
+                        let p = horizon_planes(eye, fwd, 1.0, 2.0, cam.half_diagonal_fov());
                         let proj = Projection {
                             near: MIN_NEAR.min(p.near),
                             far: p.far.max(1e5),
@@ -270,14 +289,9 @@ fn reversed_z_depth_resolution() {
     ] {
         let eye = datum.position(ground, alt);
         for fov_deg in [1.0f64, 60.0, 170.0] {
-            let cam = CameraF64 {
-                position: eye,
-                forward: east,
-                up: ground,
-                fov_y: fov_deg.to_radians(),
-            };
+            let cam = camera(eye, east, ground, fov_deg.to_radians());
             let aspect = 16.0 / 9.0;
-            let p = horizon_planes(eye, east, r_min, r_max, cam.half_diagonal_fov(aspect));
+            let p = horizon_planes(eye, east, r_min, r_max, cam.half_diagonal_fov());
             for far in [p.far, f64::INFINITY] {
                 let proj = Projection {
                     near: p.near,
@@ -377,19 +391,14 @@ fn horizon_planes_never_cull_a_visible_surface_point() {
                 add(e1, scale(up, -1.0)),
             ] {
                 for fov_deg in [1.0f64, 60.0, 170.0] {
-                    let cam = CameraF64 {
-                        position: eye,
-                        forward: fwd,
-                        up: [0.0, 0.0, 1.0],
-                        fov_y: fov_deg.to_radians(),
-                    };
+                    let cam = camera(eye, fwd, [0.0, 0.0, 1.0], fov_deg.to_radians());
                     let aspect = 16.0 / 9.0;
-                    let p = horizon_planes(eye, fwd, r_min, r_max, cam.half_diagonal_fov(aspect));
+                    let p = horizon_planes(eye, fwd, r_min, r_max, cam.half_diagonal_fov());
                     assert!(
                         p.near.is_finite() && p.far.is_finite() && p.near > 0.0 && p.far > p.near,
                         "{p:?}"
                     );
-                    let [r, u, f] = cam.basis();
+                    let [r, u, f] = basis(&cam);
                     let ty = (cam.fov_y * 0.5).tan();
                     let tx = ty * aspect;
                     for q in &local {

@@ -8,7 +8,7 @@ use planet_core::{BlockId, Datum, Edge, Face};
 use planet_render::masks::Masks;
 use planet_render::mesh::sample_position;
 use planet_render::{
-    BlockMesh, BlockTexture, CameraF64, ColourRef, DepthMode, DrawBlock, HeadlessRenderer, Image,
+    BlockMesh, BlockTexture, Camera, ColourRef, DepthMode, DrawBlock, HeadlessRenderer, Image,
     RenderSettings,
 };
 use std::collections::HashMap;
@@ -17,6 +17,15 @@ use std::sync::Arc;
 const R: f64 = 6_371_000.0;
 const W: usize = 16;
 const SIZE: u32 = 256;
+
+/// A camera at `eye` looking at `target` with vertical field of view
+/// `fov_y` (the renderer takes the aspect ratio from its target).
+fn look_at(eye: [f64; 3], target: [f64; 3], up: [f64; 3], fov_y: f64) -> Camera {
+    Camera {
+        fov_y,
+        ..Camera::look_at(eye.into(), target.into(), up.into())
+    }
+}
 
 fn renderer() -> Option<HeadlessRenderer> {
     common::headless(SIZE, SIZE)
@@ -252,12 +261,14 @@ fn inner_radius(blocks: &[DrawBlock]) -> f64 {
 
 /// Number of pixels whose ray hits the sphere of radius `r` but that show
 /// the background.
-fn holes(img: &Image, cam: &CameraF64, r: f64) -> usize {
+fn holes(img: &Image, cam: &Camera, r: f64) -> usize {
     let mut n = 0;
     for y in 0..img.height {
         for x in 0..img.width {
-            let d = cam.pixel_ray(x as f64, y as f64, img.width, img.height);
-            let o = cam.position;
+            let d = cam
+                .pixel_ray(x as f64, y as f64, img.width, img.height)
+                .to_array();
+            let o = cam.eye.to_array();
             let b = dot(o, d);
             let disc = b * b - (dot(o, o) - r * r);
             let hits = disc > 0.0 && (-b + disc.sqrt()) > 0.0;
@@ -269,7 +280,7 @@ fn holes(img: &Image, cam: &CameraF64, r: f64) -> usize {
     n
 }
 
-fn seam_cameras() -> Vec<(&'static str, CameraF64)> {
+fn seam_cameras() -> Vec<(&'static str, Camera)> {
     let corner = unit([1.0, 1.0, 1.0]);
     let edge = unit(
         Face::new(0)
@@ -278,7 +289,7 @@ fn seam_cameras() -> Vec<(&'static str, CameraF64)> {
     );
     let mut cams = vec![(
         "globe",
-        CameraF64::look_at(
+        look_at(
             add([0.0; 3], unit([1.0, 0.8, 1.2]), 3.0 * R),
             [0.0; 3],
             [0.0, 0.0, 1.0],
@@ -294,11 +305,11 @@ fn seam_cameras() -> Vec<(&'static str, CameraF64)> {
             // Oblique: 150 km up, 400 km away horizontally.
             let eye = add(add(target, p, 150_000.0), hor, 400_000.0);
             let label: &'static str = Box::leak(format!("{name}-oblique-{k}").into_boxed_str());
-            cams.push((label, CameraF64::look_at(eye, target, p, 0.9)));
+            cams.push((label, look_at(eye, target, p, 0.9)));
             // Grazing: 15 km up, 250 km away.
             let eye = add(add(target, p, 15_000.0), hor, 250_000.0);
             let label: &'static str = Box::leak(format!("{name}-grazing-{k}").into_boxed_str());
-            cams.push((label, CameraF64::look_at(eye, target, p, 0.9)));
+            cams.push((label, look_at(eye, target, p, 0.9)));
         }
     }
     cams
@@ -423,11 +434,9 @@ fn one_metre_above_ground_moving_one_centimetre_is_smooth() {
         up,
         -25f64.to_radians().sin(),
     );
-    let cam = CameraF64 {
-        position: eye,
-        forward: fwd,
-        up,
-        fov_y: 1.0,
+    let cam = Camera {
+        forward: fwd.into(),
+        ..look_at(eye, [0.0; 3], up, 1.0)
     };
     let a = r.render(&cam, &blocks).unwrap();
     let c = SIZE / 2;
@@ -437,7 +446,7 @@ fn one_metre_above_ground_moving_one_centimetre_is_smooth() {
 
     // 1 cm along the view direction: the centre distance shrinks by 1 cm.
     let mut moved = cam;
-    moved.position = add(eye, unit(fwd), 0.01);
+    moved.eye = add(eye, unit(fwd), 0.01).into();
     let b = r.render(&moved, &blocks).unwrap();
     let d1 = b.distance(c, c).unwrap();
     assert!(
@@ -448,7 +457,7 @@ fn one_metre_above_ground_moving_one_centimetre_is_smooth() {
 
     // 1 cm sideways: every pixel's distance changes smoothly.
     let mut side = cam;
-    side.position = add(eye, unit(cross(fwd, up)), 0.01);
+    side.eye = add(eye, unit(cross(fwd, up)), 0.01).into();
     let s = r.render(&side, &blocks).unwrap();
     let mut flips = 0;
     let mut coverage_changes = 0;
@@ -510,7 +519,7 @@ fn ancestor_texture_is_used_with_its_transform() {
         mesh: mesh.clone(),
         colour: ColourRef::for_block(tex, block),
     }];
-    let cam = CameraF64::look_at(
+    let cam = look_at(
         add(mesh.centre, up, 2_000_000.0),
         mesh.centre,
         [0.0, 0.0, 1.0],
@@ -550,12 +559,12 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
         [img.rgba[c], img.rgba[c + 1], img.rgba[c + 2]]
     };
     let blueness = |p: [u8; 3]| p[2] as f64 - p[1] as f64;
-    let mut shot = |cam: &CameraF64, air: bool| {
+    let mut shot = |cam: &Camera, air: bool| {
         r.renderer.settings.atmosphere = air.then_some(planet_render::render::Atmosphere::EARTH);
         r.render(cam, &blocks).unwrap()
     };
     // Straight down from 2000 km.
-    let down = CameraF64::look_at(
+    let down = look_at(
         add(mesh.centre, up, 2_000_000.0),
         mesh.centre,
         [0.0, 0.0, 1.0],
@@ -582,7 +591,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
     let dip = chord[0] * up[0] + chord[1] * up[1] + chord[2] * up[2];
     let side = unit(sub_v(chord, [up[0] * dip, up[1] * dip, up[2] * dip]));
     let eye = add(add(mesh.centre, side, 100_000.0), up, 2_000.0);
-    let graze = CameraF64::look_at(eye, mesh.centre, up, 0.3);
+    let graze = look_at(eye, mesh.centre, up, 0.3);
     let (clear_g, hazy_g) = (
         centre_px(&shot(&graze, false)),
         centre_px(&shot(&graze, true)),
@@ -594,7 +603,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
     // Extreme eyes: every pixel is the background or a lit, hazed colour;
     // a NaN in the haze would come out black (the background is not).
     let background = centre_px(&shot(
-        &CameraF64::look_at(
+        &look_at(
             add(mesh.centre, up, 1000.0),
             add(mesh.centre, up, 2000.0),
             side,
@@ -607,7 +616,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
         (
             // 1 m above the vertex; flat triangles sag up to ~120 m below it.
             "1 m above",
-            CameraF64::look_at(
+            look_at(
                 add(mesh.centre, up, 1.0),
                 add(add(mesh.centre, side, 1000.0), up, -200.0),
                 up,
@@ -617,7 +626,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
         ),
         (
             "1000 radii",
-            CameraF64::look_at(
+            look_at(
                 add(mesh.centre, up, 1000.0 * R),
                 mesh.centre,
                 [0.0, 0.0, 1.0],
@@ -627,7 +636,7 @@ fn aerial_perspective_grows_towards_the_horizon_and_stays_finite() {
         ),
         (
             "inside",
-            CameraF64::look_at(
+            look_at(
                 add(mesh.centre, up, -1000.0),
                 add(mesh.centre, up, 1000.0),
                 side,
@@ -679,7 +688,7 @@ fn coarse_colour_gets_rock_on_steep_slopes() {
     r.renderer.settings.atmosphere = None;
     let red = vec![[220u8, 20, 20]; 8 * 8];
     let lod1 = planet_core::lod::colour_filter(&red, 8);
-    let cam = CameraF64::look_at(
+    let cam = look_at(
         add(mesh.centre, up, 20_000.0),
         mesh.centre,
         [0.0, 0.0, 1.0],

@@ -6,6 +6,7 @@
 
 use glam::DVec3;
 use planet_client::tree::{PartialTree, Samples};
+use planet_core::camera::Basis;
 use planet_core::cube::{direction_from_lat_lon, FaceCoord};
 use planet_core::format::Header;
 use planet_core::{BlockId, Datum};
@@ -384,7 +385,11 @@ pub fn probe_points(
     nx: usize,
     ny: usize,
 ) -> Vec<(f64, f64)> {
-    let (f, r, u) = camera.basis();
+    let Basis {
+        forward: f,
+        right: r,
+        up: u,
+    } = camera.basis();
     let ty = (camera.fov_y * 0.5).tan();
     let tx = ty * camera.aspect;
     let mut out = Vec::new();

@@ -1,83 +1,14 @@
-//! The f64 camera, its projection (reversed-Z, finite or infinite far
-//! plane) and pixel rays.
+//! The projection of the core camera (reversed-Z, finite or infinite far
+//! plane), and depth turned back into distance.
 
-use super::*;
-
-/// A perspective camera in planet-frame f64.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CameraF64 {
-    /// Eye position, metres, planet frame.
-    pub position: [f64; 3],
-    /// View direction (need not be normalised).
-    pub forward: [f64; 3],
-    /// Approximate up direction.
-    pub up: [f64; 3],
-    /// Vertical field of view, radians.
-    pub fov_y: f64,
-}
-
-impl CameraF64 {
-    /// A camera at `eye` looking at `target`.
-    pub fn look_at(eye: [f64; 3], target: [f64; 3], up: [f64; 3], fov_y: f64) -> CameraF64 {
-        CameraF64 {
-            position: eye,
-            forward: [target[0] - eye[0], target[1] - eye[1], target[2] - eye[2]],
-            up,
-            fov_y,
-        }
-    }
-
-    /// Orthonormal basis `(right, up, forward)`.
-    pub fn basis(&self) -> [[f64; 3]; 3] {
-        let f = unit(self.forward);
-        let mut r = cross(f, self.up);
-        if norm(r) < 1e-9 * norm(self.up).max(1e-300) {
-            // Up parallel to forward: pick any perpendicular.
-            let alt = if f[0].abs() < 0.9 {
-                [1.0, 0.0, 0.0]
-            } else {
-                [0.0, 1.0, 0.0]
-            };
-            r = cross(f, alt);
-        }
-        let r = unit(r);
-        let u = cross(r, f);
-        [r, u, f]
-    }
-
-    /// Half the angle between opposite screen corners for this aspect ratio.
-    pub fn half_diagonal_fov(&self, aspect: f64) -> f64 {
-        let ty = (self.fov_y * 0.5).tan();
-        (ty * (1.0 + aspect * aspect).sqrt()).atan()
-    }
-
-    /// Unit planet-frame direction of the ray through the centre of pixel
-    /// `(px, py)` (row 0 at the top) of a `width × height` image.
-    pub fn pixel_ray(&self, px: f64, py: f64, width: u32, height: u32) -> [f64; 3] {
-        let [r, u, f] = self.basis();
-        let (x, y) = ndc(px, py, width, height);
-        let ty = (self.fov_y * 0.5).tan();
-        let tx = ty * width as f64 / height as f64;
-        unit([
-            f[0] + x * tx * r[0] + y * ty * u[0],
-            f[1] + x * tx * r[1] + y * ty * u[1],
-            f[2] + x * tx * r[2] + y * ty * u[2],
-        ])
-    }
-}
-
-/// Normalised device coordinates of a pixel centre (y up).
-pub fn ndc(px: f64, py: f64, width: u32, height: u32) -> (f64, f64) {
-    (
-        (px + 0.5) / width as f64 * 2.0 - 1.0,
-        1.0 - (py + 0.5) / height as f64 * 2.0,
-    )
-}
+/// The camera of the workspace: [`planet_core::camera::Camera`]. The
+/// renderer takes its aspect ratio from the frame target, not the camera.
+pub use planet_core::camera::{ndc, Basis, Camera};
 
 /// How near and far planes are chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DepthMode {
-    /// Thesis Eq. 4.3, see [`crate::clip_planes`].
+    /// Thesis Eq. 4.3, see [`planet_core::horizon`].
     Horizon,
     /// The horizon-fitted near plane and a far plane at infinity.
     Infinite,

@@ -2,8 +2,9 @@
 //! the cache eviction.
 
 use super::*;
-use crate::clip_planes::{horizon_planes, ClipPlanes};
 use crate::masks::{IndexRange, Masks};
+use glam::DVec3;
+use planet_core::horizon::ClipPlanes;
 use wgpu::util::DeviceExt;
 
 /// Statistics of the last frame.
@@ -36,14 +37,9 @@ pub struct FrameTarget<'a> {
 impl Renderer {
     /// The projection the next frame will use for `camera` on a target of
     /// aspect `aspect`.
-    pub fn projection(&self, camera: &CameraF64, aspect: f64) -> Projection {
-        let ClipPlanes { near, far } = horizon_planes(
-            camera.position,
-            camera.forward,
-            self.settings.r_min,
-            self.settings.r_max,
-            camera.half_diagonal_fov(aspect),
-        );
+    pub fn projection(&self, camera: &Camera, aspect: f64) -> Projection {
+        let ClipPlanes { near, far } =
+            Camera { aspect, ..*camera }.clip_planes(self.settings.r_min, self.settings.r_max);
         Projection {
             near,
             far: match self.settings.depth_mode {
@@ -61,7 +57,7 @@ impl Renderer {
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
         target: FrameTarget<'_>,
-        camera: &CameraF64,
+        camera: &Camera,
         blocks: &[DrawBlock],
     ) -> Projection {
         let FrameTarget {
@@ -76,7 +72,11 @@ impl Renderer {
         let proj = self.projection(camera, aspect);
 
         // View-projection without translation, composed in f64.
-        let [r, u, f] = camera.basis();
+        let Basis {
+            right: r,
+            up: u,
+            forward: f,
+        } = camera.basis();
         let view = [
             [r[0], u[0], -f[0], 0.0],
             [r[1], u[1], -f[1], 0.0],
@@ -84,17 +84,14 @@ impl Renderer {
             [0.0, 0.0, 0.0, 1.0],
         ];
         let vp = mat_mul(proj.matrix(), view);
-        let sun = unit(self.settings.sun_dir.map(|v| v as f64));
+        let sun = DVec3::from(self.settings.sun_dir.map(f64::from))
+            .try_normalize()
+            .unwrap_or(DVec3::NEG_Z);
         let globals = Globals {
             view_proj: vp.map(|c| c.map(|v| v as f32)),
-            sun: [sun[0] as f32, sun[1] as f32, sun[2] as f32, 0.0],
+            sun: sun.as_vec3().extend(0.0).to_array(),
             params: [self.settings.ambient, 0.0, 0.0, 0.0],
-            eye: [
-                camera.position[0] as f32,
-                camera.position[1] as f32,
-                camera.position[2] as f32,
-                0.0,
-            ],
+            eye: camera.eye.as_vec3().extend(0.0).to_array(),
             atmos: match self.settings.atmosphere {
                 Some(a) => [a.scale_height.max(1.0), a.visibility.max(1.0), 1.0, 0.0],
                 None => [1.0, 1.0, 0.0, 0.0],
@@ -175,12 +172,8 @@ impl Renderer {
                 let texels = c.texture.levels.first().map_or(1, |l| l.0) as f32 * c.scale[0];
                 coarse = (m.w as f32 / texels.max(1e-6)).log2().max(0.0);
             }
-            let rel = [
-                m.centre[0] - camera.position[0],
-                m.centre[1] - camera.position[1],
-                m.centre[2] - camera.position[2],
-            ];
-            let off = crate::camera_relative::SplitOffset::new(rel);
+            let rel = DVec3::from(m.centre) - camera.eye;
+            let off = crate::camera_relative::SplitOffset::new(rel.to_array());
             let bu = BlockUniform {
                 offset: [off.hi[0], off.hi[1], off.hi[2], 0.0],
                 offset_lo: [off.lo[0], off.lo[1], off.lo[2], 0.0],
@@ -197,8 +190,8 @@ impl Renderer {
 
         let c = match self.settings.atmosphere {
             Some(a) => a.sky(
-                camera.position,
-                sun,
+                camera.eye.to_array(),
+                sun.to_array(),
                 self.settings.radii,
                 self.settings.clear,
             ),

@@ -39,27 +39,6 @@ fn mat_mul(a: [[f64; 4]; 4], b: [[f64; 4]; 4]) -> [[f64; 4]; 4] {
     out
 }
 
-fn norm(v: [f64; 3]) -> f64 {
-    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
-}
-
-fn unit(v: [f64; 3]) -> [f64; 3] {
-    let l = norm(v);
-    if l > 0.0 {
-        [v[0] / l, v[1] / l, v[2] / l]
-    } else {
-        [0.0, 0.0, -1.0]
-    }
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -140,7 +119,11 @@ mod tests {
 
     #[test]
     fn pixel_rays_match_the_basis() {
-        let cam = CameraF64::look_at([0.0, 0.0, 10.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 1.0);
+        let cam = Camera::look_at(
+            glam::DVec3::new(0.0, 0.0, 10.0),
+            glam::DVec3::ZERO,
+            glam::DVec3::Y,
+        );
         let r = cam.pixel_ray(49.5, 49.5, 100, 100);
         assert!((r[2] + 1.0).abs() < 1e-12);
         let top = cam.pixel_ray(49.5, 0.0, 100, 100);

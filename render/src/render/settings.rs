@@ -93,16 +93,17 @@ impl Atmosphere {
     /// polar; `exp(−h/H)`, 1 at and below the surface). `sun` is a unit
     /// vector. Finite for every eye: at the centre, or not finite, `space`.
     pub fn sky(&self, eye: [f64; 3], sun: [f64; 3], radii: [f64; 2], space: [f64; 4]) -> [f64; 4] {
-        let len = (eye[0] * eye[0] + eye[1] * eye[1] + eye[2] * eye[2]).sqrt();
+        let eye = glam::DVec3::from(eye);
+        let len = eye.length();
         if !(len.is_finite() && len > 0.0) {
             return space;
         }
-        let d = eye.map(|v| v / len);
+        let d = eye / len;
         let (a, b) = (radii[0].max(1.0), radii[1].max(1.0));
-        let r = 1.0 / ((d[0] * d[0] + d[1] * d[1]) / (a * a) + d[2] * d[2] / (b * b)).sqrt();
+        let r = 1.0 / ((d.x * d.x + d.y * d.y) / (a * a) + d.z * d.z / (b * b)).sqrt();
         let h = (len - r).max(0.0);
         let density = (-h / f64::from(self.scale_height.max(1.0))).exp();
-        let sun_up = d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2];
+        let sun_up = d.dot(glam::DVec3::from(sun));
         let sky = Self::sky_colour(if sun_up.is_finite() { sun_up } else { 0.0 });
         [
             space[0] + (sky[0] - space[0]) * density,

@@ -10,20 +10,9 @@ use planet_core::cube::direction_from_lat_lon;
 use planet_core::cube::FaceCoord;
 use planet_core::format::Header;
 use planet_core::{BlockId, Datum};
-use planet_render::CameraF64;
 
 /// Vertical field of view of the viewer (radians).
 pub const FOV_Y: f64 = 1.0;
-
-/// The renderer's camera for the client's.
-pub fn to_render(c: &Camera) -> CameraF64 {
-    CameraF64 {
-        position: c.eye.to_array(),
-        forward: c.forward.to_array(),
-        up: c.up.to_array(),
-        fov_y: c.fov_y,
-    }
-}
 
 /// Local (up, east, north) unit vectors at geodetic latitude / longitude
 /// (degrees).

@@ -2,7 +2,7 @@
 //! per-frame CSV of streaming statistics and, with `--reference`, the image
 //! error of every written frame against the complete database.
 
-use crate::app::camera::{to_render, FOV_Y};
+use crate::app::camera::FOV_Y;
 use crate::app::connect::{self, Source};
 use crate::app::reference::{image_error, reference_config, reference_qf, Reference};
 use crate::app::scene::{BuildMode, SceneBuilder};
@@ -168,8 +168,7 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
         if write {
             let blocks = scene.prepare(sc.client.tree(), &out.draw, BuildMode::Sync);
             renderer.renderer.settings = fit_planes(&base, &scene, &blocks);
-            let cam_r = to_render(&cam);
-            let img = renderer.render(&cam_r, &blocks)?;
+            let img = renderer.render(&cam, &blocks)?;
             let png = opts.out.join(format!("frame_{i:05}.png"));
             img.save_png(&png)?;
             written += 1;
@@ -177,7 +176,7 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
                 let t0 = Instant::now();
                 let rblocks = r.converge(&cam, 5000, Duration::from_secs(120));
                 renderer.renderer.settings = fit_planes(&base, r.scene(), &rblocks);
-                let rimg = renderer.render(&cam_r, &rblocks)?;
+                let rimg = renderer.render(&cam, &rblocks)?;
                 let e = image_error(&img, &rimg);
                 let rtris = renderer.renderer.stats.triangles;
                 row += &format!(

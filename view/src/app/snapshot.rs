@@ -1,7 +1,7 @@
 //! `planet-view snapshot`: one still image from the complete database (the
 //! reference client converged for the camera), e.g. for documentation.
 
-use crate::app::camera::{geodetic_to_position, local_frame, to_render};
+use crate::app::camera::{geodetic_to_position, local_frame};
 use crate::app::reference::{reference_qf, Reference};
 use crate::app::render_cmd::fit_planes;
 use anyhow::{Context, Result};
@@ -76,7 +76,7 @@ pub fn run(o: &SnapshotOptions) -> Result<()> {
     let mut r = HeadlessRenderer::with_settings(o.width, o.height, base.clone())
         .context("headless renderer (install mesa-vulkan-drivers for lavapipe)")?;
     r.renderer.settings = fit_planes(&base, reference.scene(), &blocks);
-    let img = r.render(&to_render(&cam), &blocks)?;
+    let img = r.render(&cam, &blocks)?;
     img.save_png(&o.out)?;
     let covered = img.depth.iter().filter(|&&d| d > 0.0).count();
     println!(

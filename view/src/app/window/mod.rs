@@ -12,7 +12,7 @@
 //! Tab toggles orbit / fly, G goes to `--goto`, C toggles crack fixing,
 //! H toggles the readout, Esc quits.
 
-use crate::app::camera::{to_render, Controller, Input, Mode};
+use crate::app::camera::{Controller, Input, Mode};
 use crate::app::connect::{self, Endpoint, Source};
 use crate::app::hud;
 use crate::app::render_cmd::fit_planes;
@@ -421,7 +421,7 @@ impl App {
                 width: w,
                 height: h,
             },
-            &to_render(&cam),
+            &cam,
             &blocks,
         );
         let sview = frame.texture.create_view(&Default::default());
