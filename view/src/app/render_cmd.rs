@@ -167,7 +167,8 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
         );
         if write {
             let blocks = scene.prepare(sc.client.tree(), &out.draw, BuildMode::Sync);
-            renderer.renderer.settings = fit_planes(&base, &scene, &blocks);
+            let own = fit_planes(&base, &scene, &blocks);
+            renderer.renderer.settings = own.clone();
             let img = renderer.render(&cam, &blocks)?;
             let png = opts.out.join(format!("frame_{i:05}.png"));
             img.save_png(&png)?;
@@ -175,7 +176,17 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
             if let Some(r) = reference.as_mut() {
                 let t0 = Instant::now();
                 let rblocks = r.converge(&cam, 5000, Duration::from_secs(120));
-                renderer.renderer.settings = fit_planes(&base, r.scene(), &rblocks);
+                // One projection for both images (the lower sag-fitted
+                // radius of the two block sets), so that the depth error
+                // measures the geometry, not two far planes' rounding.
+                let mut shared = fit_planes(&base, r.scene(), &rblocks);
+                shared.r_min = shared.r_min.min(own.r_min);
+                renderer.renderer.settings = shared;
+                let img = if renderer.renderer.settings.r_min == own.r_min {
+                    img
+                } else {
+                    renderer.render(&cam, &blocks)?
+                };
                 let rimg = renderer.render(&cam, &rblocks)?;
                 let e = image_error(&img, &rimg);
                 let rtris = renderer.renderer.stats.triangles;
