@@ -32,6 +32,12 @@
 //!   maximum elevation; the outer points are pushed out by `1/cos θ`, with
 //!   `θ` (plus 10 %) the largest angle from a grid cell's centre to its
 //!   corners, so the planes through them stay outside the curved surface.
+//! - **The pushed points' false positives.** Those pushed-out points rise up
+//!   to about 2 km above a coarse block (3 × 3 cells of 1.9° at level 4),
+//!   and each frustum plane may pass on a different one: a camera looking up
+//!   from 300 m kept every block under it. A block is also hidden when the
+//!   ball about the planet centre through its highest true surface point
+//!   (`top_radius`: exact, from the patch's corners) misses the view cone.
 //!
 //! All tests run in eye-relative coordinates in `f64`.
 
@@ -79,6 +85,11 @@ pub struct BlockBounds {
     pub radius: f64,
     /// Radius of a sphere about `centre` holding every bounding point.
     pub sphere_radius: f64,
+    /// An upper bound of the distance from the planet centre to the block's
+    /// surface (not to the pushed-out bounding points): the block is hidden
+    /// when a ball of this radius about the centre misses the view cone
+    /// ([`View::top_in_view`]), as when the camera looks up from above it.
+    pub top_radius: f64,
     /// For blocks coarser than [`PART_LEVEL`]: the bounds of their
     /// descendants at that level (same elevation range). The block is visible
     /// only if one part is, which removes the false positives of one loose
@@ -167,6 +178,7 @@ impl BlockBounds {
             .map(|p| (*p - centre).length())
             .fold(0.0, f64::max)
             * (1.0 + 1e-12);
+        let corners = [dir(0.0, 0.0), dir(1.0, 0.0), dir(0.0, 1.0), dir(1.0, 1.0)];
         BlockBounds {
             points,
             min,
@@ -174,9 +186,30 @@ impl BlockBounds {
             centre,
             radius,
             sphere_radius,
+            top_radius: top_radius(datum, corners, h_max),
             parts: Vec::new(),
         }
     }
+}
+
+/// An upper bound of the distance from the planet centre to the points at
+/// heights up to `h_max` over the cube-face patch with these corner
+/// directions (geodetic normals). That distance depends on `|n_z|` only and
+/// decreases as it grows (for heights small beside the radius; otherwise the
+/// bound is infinite), and over a patch bounded by great circles `|n_z|` is
+/// smallest at a corner, or 0 where the patch meets the equator.
+fn top_radius(datum: &Datum, corners: [DVec3; 4], h_max: f64) -> f64 {
+    if h_max.is_nan() || h_max.abs() > 0.01 * datum.equatorial_radius() {
+        return f64::INFINITY;
+    }
+    let z = corners.map(|c| c.z);
+    let w = if z.iter().any(|&v| v <= 0.0) && z.iter().any(|&v| v >= 0.0) {
+        0.0
+    } else {
+        z.iter().map(|v| v.abs()).fold(1.0, f64::min)
+    };
+    let n = [(1.0 - w * w).max(0.0).sqrt(), 0.0, w];
+    DVec3::from_array(datum.position(n, h_max)).length() * (1.0 + 1e-12) + 1e-6
 }
 
 fn angle(a: DVec3, b: DVec3) -> f64 {
@@ -210,7 +243,31 @@ pub struct View {
     eye_len: f64,
     cos_beta: f64,
     cone_half_angle: f64,
+    /// The radius from which a ball about the planet centre meets the view
+    /// cone ([`centre_reach`]).
+    centre_reach: f64,
     planet_in_view: bool,
+}
+
+/// The smallest radius of a ball about the planet centre (the origin) that
+/// meets the cone (apex, unit axis, half-angle): 0 when the centre is in the
+/// cone, `‖apex‖·sin β` when the centre is `β < 90°` outside its edge, `‖apex‖`
+/// beyond. [`cone_meets_sphere`] with the origin as centre is
+/// `radius >= centre_reach(..)` (the same 1e-9 rad of slack).
+fn centre_reach(apex: DVec3, axis: DVec3, half: f64) -> f64 {
+    let dist = apex.length();
+    if dist.is_nan() || dist <= 0.0 || dist.is_infinite() {
+        return 0.0;
+    }
+    let cos_angle = (-apex.dot(axis) / dist).clamp(-1.0, 1.0);
+    let beyond = cos_angle.acos() - half - 1e-9;
+    if beyond.is_nan() || beyond <= 0.0 {
+        0.0
+    } else if beyond >= std::f64::consts::FRAC_PI_2 {
+        dist
+    } else {
+        dist * beyond.sin()
+    }
 }
 
 /// Whether the cone (apex, unit axis, half-angle) meets the sphere.
@@ -264,17 +321,14 @@ impl View {
             1.0
         };
         let cone_half_angle = (tx.hypot(ty)).atan();
-        let planet_in_view = cone_meets_sphere(
-            camera.eye,
-            f,
-            cone_half_angle,
-            DVec3::ZERO,
-            r_max.max(r_min),
-        );
+        let centre_reach = centre_reach(camera.eye, f, cone_half_angle);
+        let r = r_max.max(r_min);
+        let planet_in_view = r.is_nan() || r >= centre_reach;
         View {
             plane_norms: planes.map(|p| p.n.length()),
             cone_cos_sin: (cone_half_angle.cos(), cone_half_angle.sin()),
             cone_half_angle,
+            centre_reach,
             planet_in_view,
             camera: *camera,
             near,
@@ -435,6 +489,7 @@ impl View {
                 && b.parts.iter().any(|p| self.is_visible(p));
         }
         self.planet_in_view
+            && self.top_in_view(b.top_radius)
             && self.sphere_in_cone(b.centre, b.sphere_radius)
             && self.box_in_frustum(b.min, b.max)
             && self.hull_in_frustum_sphere(&b.points, b.centre, b.sphere_radius)
@@ -449,6 +504,7 @@ impl View {
             return self.is_visible(b);
         }
         self.planet_in_view
+            && self.top_in_view(b.top_radius)
             && self.sphere_in_cone(b.centre, b.sphere_radius)
             && self.box_in_frustum(b.min, b.max)
             && self.hull_in_frustum_sphere(&b.points, b.centre, b.sphere_radius)
@@ -460,11 +516,22 @@ impl View {
         self.planet_in_view
     }
 
+    /// Whether a ball of radius `top_radius` about the planet centre meets
+    /// the view cone ([`BlockBounds::top_radius`]): false when the camera
+    /// looks away from everything that low, e.g. up from above the block,
+    /// where the bounding points pushed out over a coarse grid can still
+    /// pass every plane. Exact for the block's true surface, so it only
+    /// removes false positives of the hull test.
+    pub fn top_in_view(&self, top_radius: f64) -> bool {
+        top_radius.is_nan() || top_radius >= self.centre_reach
+    }
+
     /// Whether the bounding point `p` of a block proves the block visible:
     /// `p` is inside every frustum plane (each plane test of
     /// [`View::hull_in_frustum`] and, since the box holds `p`, of
     /// [`View::box_in_frustum`] passes; the same expressions) and not
-    /// behind the horizon. With [`View::planet_in_view`] and
+    /// behind the horizon. With [`View::planet_in_view`],
+    /// [`View::top_in_view`] of the block's top radius and
     /// [`View::sphere_in_cone`] of the block's ball this gives
     /// [`View::is_visible`] of a block without parts.
     pub fn point_witnesses_visible(&self, p: DVec3) -> bool {
@@ -600,24 +667,93 @@ mod tests {
     #[test]
     fn bounds_contain_surface() {
         let datum = Datum::WGS84;
-        for level in 0..4u8 {
-            let id = BlockId::new(Face::new(1).unwrap(), level, 0, 0).unwrap();
-            let b = BlockBounds::new(&datum, id, -100.0, 100.0);
-            let (s0, t0, s1, t1) = id.extent();
-            for j in 0..=20 {
-                for i in 0..=20 {
-                    let fc = FaceCoord {
-                        face: id.face,
-                        s: s0 + (s1 - s0) * i as f64 / 20.0,
-                        t: t0 + (t1 - t0) * j as f64 / 20.0,
-                    };
-                    for h in [-100.0, 0.0, 100.0] {
-                        let p = DVec3::from_array(datum.position(fc.direction(), h));
-                        assert!(p.cmpge(b.min).all() && p.cmple(b.max).all(), "{level}");
+        // Every face (the polar faces, faces across the equator) at coarse
+        // and fine levels, blocks at corners and in the middle.
+        for face in Face::ALL {
+            for level in [0u8, 1, 2, 3, 6] {
+                let last = (1u32 << level) - 1;
+                for (x, y) in [(0, 0), (last, 0), (last / 2, (last / 2 + 1).min(last))] {
+                    let id = BlockId::new(face, level, x, y).unwrap();
+                    let b = BlockBounds::new(&datum, id, -100.0, 100.0);
+                    let (s0, t0, s1, t1) = id.extent();
+                    let mut top: f64 = 0.0;
+                    for j in 0..=20 {
+                        for i in 0..=20 {
+                            let fc = FaceCoord {
+                                face: id.face,
+                                s: s0 + (s1 - s0) * i as f64 / 20.0,
+                                t: t0 + (t1 - t0) * j as f64 / 20.0,
+                            };
+                            for h in [-100.0, 0.0, 100.0] {
+                                let p = DVec3::from_array(datum.position(fc.direction(), h));
+                                assert!(p.cmpge(b.min).all() && p.cmple(b.max).all(), "{level}");
+                                assert!(p.length() <= b.top_radius, "{id:?} {}", p.length());
+                                top = top.max(p.length());
+                            }
+                        }
                     }
+                    // Tight: within 50 m of the sampled highest point (the
+                    // grid may miss the equator by up to 2.25°).
+                    assert!(
+                        b.top_radius - top < 50.0,
+                        "{id:?}: {} vs {top}",
+                        b.top_radius
+                    );
+                    assert!(b.radius > 0.0);
                 }
             }
-            assert!(b.radius > 0.0);
+        }
+    }
+
+    /// A ball about the centre meets the cone exactly when its radius
+    /// reaches [`centre_reach`] (the formula [`View::top_in_view`] and
+    /// [`View::planet_in_view`] use), against the general cone/sphere test.
+    #[test]
+    fn centre_reach_matches_cone_meets_sphere() {
+        let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..20_000 {
+            let eye = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * R * 4.0;
+            let axis = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
+            let half = next() * 1.5;
+            let reach = centre_reach(eye, axis, half);
+            for r in [reach * 0.999, reach * 1.001, R, eye.length() * 1.001] {
+                let meets = cone_meets_sphere(eye, axis, half, DVec3::ZERO, r);
+                // Only a sliver of 1e-9 rad either way may differ.
+                if (r - reach).abs() > 1e-6 * eye.length() {
+                    assert_eq!(meets, r >= reach, "{eye} {axis} {half} r {r} reach {reach}");
+                }
+            }
+        }
+    }
+
+    /// Looking up from 316 m above the datum: every block below the eye is
+    /// hidden, although their pushed-out bounding points rise up to about
+    /// 2 km and pass each frustum plane (the case a client property test
+    /// found); looking down, the block under the eye is visible.
+    #[test]
+    fn blocks_below_an_eye_looking_up_are_hidden() {
+        let datum = Datum::WGS84;
+        let a = datum.equatorial_radius();
+        let eye = DVec3::new(-(a + 316.0), 0.0, 0.0);
+        let up = Camera::look_at(eye, eye * 2.0, DVec3::Z);
+        let down = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
+        let id = FaceCoord::from_direction([-1.0, 0.0, 0.0]);
+        for level in 2..=6u8 {
+            let n = 1u32 << level;
+            let x = ((id.s * n as f64) as u32).min(n - 1);
+            let y = ((id.t * n as f64) as u32).min(n - 1);
+            let block = BlockId::new(id.face, level, x, y).unwrap();
+            let b = BlockBounds::new(&datum, block, -1514.0, -167.0);
+            let view = View::new(&up, a - 1600.0, a + 9000.0);
+            assert!(!view.is_visible(&b), "{block:?} visible looking up");
+            let view = View::new(&down, a - 1600.0, a + 9000.0);
+            assert!(view.is_visible(&b), "{block:?} hidden looking down");
         }
     }
 

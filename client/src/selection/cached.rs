@@ -49,6 +49,8 @@ struct Cold {
     witness: Option<DVec3>,
     /// A ball holding the node's bounding points and its parts' points.
     own: (DVec3, f64),
+    /// The bounds' [`BlockBounds::top_radius`].
+    top: f64,
     bounds: Arc<BlockBounds>,
     /// Whether the bounds have parts.
     parts: bool,
@@ -398,6 +400,7 @@ impl Selector {
                 hint: 0,
                 witness: None,
                 own,
+                top: b.top_radius,
                 bounds: b.clone(),
                 parts: !b.parts.is_empty(),
                 err1: n.record.error as f64,
@@ -1117,12 +1120,14 @@ impl Selector {
 /// meets the view cone and one part is visible; its witness is a bounding
 /// point of one part (`hint` is then that part's index): inside every
 /// frustum plane and in front of the horizon, it passes each test of that
-/// part but the cone test of the part's ball, which is redone.
+/// part but the cone tests of the part's ball and top radius, which are
+/// redone.
 fn exact_visible(view: &View, c: &mut Cold) -> bool {
     let Cold {
         hint,
         witness,
         own,
+        top,
         bounds,
         parts,
         ..
@@ -1133,11 +1138,12 @@ fn exact_visible(view: &View, c: &mut Cold) -> bool {
         let proven = view.planet_in_view()
             && view.point_witnesses_visible(p)
             && if !*parts {
-                view.sphere_in_cone(own.0, own.1)
+                view.top_in_view(*top) && view.sphere_in_cone(own.0, own.1)
             } else {
                 let b = &**bounds;
                 b.parts.get(*hint as usize).is_some_and(|part| {
                     part.parts.is_empty()
+                        && view.top_in_view(part.top_radius)
                         && view.sphere_in_cone(b.centre, b.sphere_radius)
                         && view.sphere_in_cone(part.centre, part.sphere_radius)
                 })
@@ -1152,7 +1158,10 @@ fn exact_visible(view: &View, c: &mut Cold) -> bool {
         let v = view.is_visible(b);
         if v {
             let found = b.parts.iter().enumerate().find_map(|(k, part)| {
-                if !part.parts.is_empty() || !view.sphere_in_cone(part.centre, part.sphere_radius) {
+                if !part.parts.is_empty()
+                    || !view.top_in_view(part.top_radius)
+                    || !view.sphere_in_cone(part.centre, part.sphere_radius)
+                {
                     return None;
                 }
                 let p = part
