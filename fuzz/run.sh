@@ -11,6 +11,8 @@
 # fuzz/regressions/TARGET/ and fuzz/corpus/TARGET/ without cargo-fuzz.
 # Targets: protocol_frames, db_record, db_header (planet-core/-protocol),
 # control_session (the server's control-stream state machine, stateful),
+# db_open_request (a database file opened as the server opens it, with the
+# requests a client sends for it checked as the server checks them),
 # server_config (planet-server's TOML parsing and validation) and
 # raster_readers (planet-preprocess: GeoTIFF/GeoKeys/CRS readers on untrusted
 # bytes).

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use futures_util::stream::{FuturesUnordered, StreamExt};
-use planet_core::format::{peek_record_len, record_checksum_ok, SUPERBLOCK_LEN};
+use planet_core::format::record_checksum_ok;
 use planet_protocol::{
     decode_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight, Limits,
     LodRequest, ResponseHead, ServerEvent, ServerSession, Welcome, LOD_REQUEST_FRAME_LEN,
@@ -19,7 +19,7 @@ use planet_protocol::{
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
 
-use crate::db::MappedDb;
+use crate::db::{MappedDb, RequestCheck};
 use crate::metrics::{HandshakeEnd, RequestOutcome};
 use crate::{PendingGuard, Shared, TenantRt};
 
@@ -592,45 +592,15 @@ fn storage_error(ctx: &ConnCtx, db: &MappedDb, offset: u64, e: &std::io::Error) 
     )
 }
 
-/// Checks a request against the database, reading only the 8-byte record
-/// prefix.
+/// Checks a request against the session and the database
+/// ([`MappedDb::check_request`]: reads only the 8-byte record prefix).
 fn validate(ctx: &ConnCtx, est: &Established, req: &LodRequest) -> Result<(), ErrorMsg> {
     est.session.check_request(req)?;
     let db = &est.db;
-    let end = req.offset.checked_add(u64::from(req.size));
-    if req.offset < SUPERBLOCK_LEN as u64 || end.is_none_or(|e| e > db.records_end()) {
-        return Err(ErrorMsg::new(
-            ErrorCode::OutOfRange,
-            format!(
-                "{}+{} is outside the record area [{SUPERBLOCK_LEN}, {})",
-                req.offset,
-                req.size,
-                db.records_end()
-            ),
-        ));
-    }
-    if req.offset + 8 > db.records_end() {
-        return Err(ErrorMsg::new(
-            ErrorCode::NotARecord,
-            "no record prefix at offset",
-        ));
-    }
-    let prefix = db
-        .read(req.offset, 8)
-        .map_err(|e| storage_error(ctx, db, req.offset, &e))?;
-    let len = peek_record_len(&prefix).map_err(|e| {
-        ErrorMsg::new(
-            ErrorCode::NotARecord,
-            format!("offset {} is not a record start: {e}", req.offset),
-        )
-    })?;
-    if len != req.size {
-        return Err(ErrorMsg::new(
-            ErrorCode::WrongSize,
-            format!("record at {} is {len} bytes, not {}", req.offset, req.size),
-        ));
-    }
-    Ok(())
+    db.check_request(req.offset, req.size).map_err(|e| match e {
+        RequestCheck::Refused(msg) => msg,
+        RequestCheck::Storage(e) => storage_error(ctx, db, req.offset, &e),
+    })
 }
 
 async fn serve_request(

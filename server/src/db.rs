@@ -35,7 +35,8 @@ use std::sync::{Arc, RwLock};
 
 use bytes::Bytes;
 use memmap2::Mmap;
-use planet_core::format::{Superblock, SUPERBLOCK_LEN};
+use planet_core::format::{peek_record_len, Superblock, SUPERBLOCK_LEN};
+use planet_protocol::{ErrorCode, ErrorMsg};
 
 use crate::config::StorageMode;
 
@@ -278,6 +279,58 @@ impl MappedDb {
     pub fn records_end(&self) -> u64 {
         self.superblock.header_offset
     }
+
+    /// Whether `size` bytes at `offset` are one whole record of this file
+    /// (docs/PROTOCOL.md, "Requests"): inside the record area
+    /// `[64, header_offset)` (else `out_of_range`), starting with a record
+    /// prefix (else `not_a_record`) whose length is `size` (else
+    /// `wrong_size`). Reads only the 8-byte prefix; a failing read is
+    /// [`RequestCheck::Storage`]. A function of the file alone (the
+    /// `db_open_request` fuzz target drives it with the open).
+    pub fn check_request(self: &Arc<Self>, offset: u64, size: u32) -> Result<(), RequestCheck> {
+        let refused = |code, reason: String| RequestCheck::Refused(ErrorMsg::new(code, reason));
+        let end = offset.checked_add(u64::from(size));
+        if offset < SUPERBLOCK_LEN as u64 || end.is_none_or(|e| e > self.records_end()) {
+            return Err(refused(
+                ErrorCode::OutOfRange,
+                format!(
+                    "{offset}+{size} is outside the record area [{SUPERBLOCK_LEN}, {})",
+                    self.records_end()
+                ),
+            ));
+        }
+        if offset + 8 > self.records_end() {
+            return Err(refused(
+                ErrorCode::NotARecord,
+                "no record prefix at offset".into(),
+            ));
+        }
+        let prefix = self.read(offset, 8).map_err(RequestCheck::Storage)?;
+        let len = peek_record_len(&prefix).map_err(|e| {
+            refused(
+                ErrorCode::NotARecord,
+                format!("offset {offset} is not a record start: {e}"),
+            )
+        })?;
+        if len != size {
+            return Err(refused(
+                ErrorCode::WrongSize,
+                format!("record at {offset} is {len} bytes, not {size}"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Why [`MappedDb::check_request`] refuses a request.
+#[derive(Debug, thiserror::Error)]
+pub enum RequestCheck {
+    /// Not a record of this file: the error reply to send.
+    #[error("{0:?}")]
+    Refused(ErrorMsg),
+    /// The record prefix could not be read (truncated or failing storage).
+    #[error("cannot read the record prefix: {0}")]
+    Storage(#[source] std::io::Error),
 }
 
 /// A byte range of a mapped database, usable as a zero-copy `Bytes` owner.

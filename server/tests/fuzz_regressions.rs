@@ -8,7 +8,8 @@
 use std::path::{Path, PathBuf};
 
 use planet_testkit::fuzzing::{
-    control_session, db_header, db_record, protocol_frames, repair_crc, server_config,
+    control_session, db_header, db_open_request, db_open_request_seed, db_record, protocol_frames,
+    repair_crc, server_config,
 };
 
 fn fuzz_dir() -> PathBuf {
@@ -70,6 +71,28 @@ fn replay_control_session() {
     // The seeds reach every state: welcomed then requests, cancel and
     // goodbye; refused; garbage.
     assert!(replay("control_session", control_session) >= 3);
+}
+
+#[test]
+fn replay_db_open_request() {
+    // A fresh seed (a valid file, a request for each of its records and
+    // four bad ones) by pread and from the map, as is and repaired: all 26
+    // record requests accepted, the others refused.
+    // PLANET_WRITE_FUZZ_SEEDS=DIR writes them there (the corpus's seeds).
+    for flags in [0u8, 1, 2, 3] {
+        let seed = db_open_request_seed(flags);
+        assert_eq!(db_open_request(&seed), 26, "flags {flags}");
+        if let Some(dir) = std::env::var_os("PLANET_WRITE_FUZZ_SEEDS") {
+            std::fs::write(Path::new(&dir).join(format!("seed-{flags}")), &seed).expect("write");
+        }
+    }
+    // A truncated file refuses to open (nothing accepted).
+    let seed = db_open_request_seed(0);
+    assert_eq!(db_open_request(&seed[..seed.len() - 1]), 0);
+    let n = replay("db_open_request", |d| {
+        db_open_request(d);
+    });
+    assert!(n >= 4);
 }
 
 #[test]

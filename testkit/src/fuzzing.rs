@@ -243,6 +243,176 @@ pub fn server_config(data: &[u8]) {
     }
 }
 
+/// `db_open_request`: a database file a server is handed, opened and
+/// validated as `planet-server` opens it (by `pread` or from a map),
+/// together with requests a client sends for it, checked as the server
+/// checks them ([`MappedDb::check_request`]).
+///
+/// Input: a flags byte (bit 0: map the file; bit 1: repair the
+/// superblock's file length and the superblock's and header's checksums, so
+/// the checks behind them are reached), a request count `k` (mod 32), `k`
+/// requests of 12 bytes (offset u64 LE, size u32 LE), then the file. An
+/// accepted request must lie in the record area and read back as a whole
+/// record of its size; a refusal must be one of the three request errors;
+/// nothing may fail to read from a file that did not change. Writes the
+/// file to the temporary directory under a name of the process. Returns the
+/// number of accepted requests (the replay test checks that the seeds reach
+/// acceptance).
+pub fn db_open_request(data: &[u8]) -> usize {
+    use planet_protocol::ErrorCode;
+    use planet_server::config::StorageMode;
+    use planet_server::db::{MappedDb, RequestCheck};
+
+    let [flags, k, rest @ ..] = data else {
+        return 0;
+    };
+    let k = usize::from(*k % 32);
+    if rest.len() < 12 * k {
+        return 0;
+    }
+    let (reqs, file) = rest.split_at(12 * k);
+    let mut file = file.to_vec();
+    if flags & 2 != 0 {
+        repair_db_file(&mut file);
+    }
+    let path = std::env::temp_dir().join(format!("planet-fuzz-db-{}.planetdb", std::process::id()));
+    if std::fs::write(&path, &file).is_err() {
+        return 0;
+    }
+    let mode = if flags & 1 != 0 {
+        StorageMode::Mmap
+    } else {
+        StorageMode::Pread
+    };
+    let mut accepted = 0;
+    if let Ok(db) = MappedDb::open_with("fuzz", &path, mode) {
+        let db = std::sync::Arc::new(db);
+        assert!(db.records_end() >= SUPERBLOCK_LEN as u64 && db.records_end() <= db.len());
+        for r in reqs.chunks_exact(12) {
+            let (o, z) = r.split_at(8);
+            let offset = u64::from_le_bytes(o.try_into().expect("8 bytes"));
+            let size = u32::from_le_bytes(z.try_into().expect("4 bytes"));
+            match db.check_request(offset, size) {
+                Ok(()) => {
+                    let end = offset + u64::from(size);
+                    assert!(offset >= SUPERBLOCK_LEN as u64 && end <= db.records_end());
+                    let bytes = db
+                        .read(offset, size as usize)
+                        .expect("an accepted record reads back");
+                    assert_eq!(format::peek_record_len(&bytes).ok(), Some(size));
+                    accepted += 1;
+                }
+                Err(RequestCheck::Refused(e)) => assert!(
+                    matches!(
+                        e.code,
+                        ErrorCode::OutOfRange | ErrorCode::NotARecord | ErrorCode::WrongSize
+                    ),
+                    "{e:?}"
+                ),
+                Err(RequestCheck::Storage(e)) => panic!("storage error on an unchanged file: {e}"),
+            }
+        }
+    }
+    let _ = std::fs::remove_file(&path);
+    accepted
+}
+
+/// Sets a database file's stored length to its length and repairs the
+/// header's and the superblock's checksums (docs/FORMAT.md).
+fn repair_db_file(file: &mut [u8]) {
+    if file.len() < SUPERBLOCK_LEN {
+        return;
+    }
+    let len = file.len() as u64;
+    file[32..40].copy_from_slice(&len.to_le_bytes());
+    let field = |a: usize, b: usize| {
+        file[a..b]
+            .iter()
+            .rev()
+            .fold(0u64, |v, x| v << 8 | u64::from(*x))
+    };
+    let (ho, hl) = (field(16, 24), field(24, 28));
+    if hl >= 4 && ho.checked_add(hl).is_some_and(|e| e <= len) {
+        let (ho, hl) = (ho as usize, hl as usize);
+        let crc = repair_crc(&file[ho..ho + hl - 4]);
+        file[ho + hl - 4..ho + hl].copy_from_slice(&crc.to_le_bytes());
+    }
+    let crc = repair_crc(&file[..60]);
+    file[60..64].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// A seed input of [`db_open_request`]: a small valid database (per face a
+/// root with four children, payloads of tens of bytes) and requests for
+/// each of its records, for a record with a wrong size, inside a record,
+/// and outside the record area.
+pub fn db_open_request_seed(flags: u8) -> Vec<u8> {
+    use planet_core::codec::Payload;
+    use planet_core::format::{encode_record, ChildRef, DbWriter, Tree, TreeInfo};
+    use planet_core::{BlockId, Datum, Face};
+
+    let path =
+        std::env::temp_dir().join(format!("planet-fuzz-seed-{}.planetdb", std::process::id()));
+    let mut w = DbWriter::create(&path).expect("create the seed database");
+    let mut recs = Vec::new();
+    let child_ref = |(offset, size): (u64, u32)| ChildRef {
+        offset,
+        size,
+        error: 1.0,
+        min_elevation: -5.0,
+        max_elevation: 5.0,
+    };
+    let mut roots = [ChildRef::default(); 6];
+    for (f, face) in Face::ALL.iter().enumerate() {
+        let root = BlockId::root(*face);
+        let mut kids = Vec::new();
+        for (k, child) in root.children().iter().enumerate() {
+            let raw: Vec<u8> = (0..20 + k).map(|i| (i * 7 + f) as u8).collect();
+            let rec = encode_record(Tree::Elevation, *child, &[], &Payload::lz4(&raw));
+            let at = w.append(&rec).expect("append");
+            recs.push(at);
+            kids.push(child_ref(at));
+        }
+        let rec = encode_record(Tree::Elevation, root, &kids, &Payload::lz4(&[f as u8; 30]));
+        let at = w.append(&rec).expect("append");
+        recs.push(at);
+        roots[f] = child_ref(at);
+    }
+    let header = Header {
+        datum: Datum::WGS84,
+        elevation_scale: 1.0,
+        elevation_offset: 0.0,
+        min_elevation: -5.0,
+        max_elevation: 5.0,
+        elevation: TreeInfo {
+            block_width: 4,
+            codec: ElevationCodec::Legacy,
+            max_level: 1,
+            root_records: roots,
+            root_first_lods: std::array::from_fn(|_| vec![0i16; 9]),
+        },
+        colour: None,
+        description: "fuzz seed".into(),
+    };
+    w.finish(&header).expect("finish the seed database");
+    let file = std::fs::read(&path).expect("read the seed database");
+    let _ = std::fs::remove_file(&path);
+    let (o0, s0) = recs[0];
+    let mut reqs: Vec<(u64, u32)> = recs.iter().copied().take(26).collect();
+    reqs.extend([
+        (o0, s0 + 1),
+        (o0 + 4, s0),
+        (0, 64),
+        (file.len() as u64 - 8, 8),
+    ]);
+    let mut out = vec![flags, reqs.len() as u8];
+    for (o, z) in reqs {
+        out.extend_from_slice(&o.to_le_bytes());
+        out.extend_from_slice(&z.to_le_bytes());
+    }
+    out.extend_from_slice(&file);
+    out
+}
+
 /// `raster_readers`: the raster readers of planet-build (GeoTIFF with its
 /// GeoKeys and CRS) on untrusted bytes: no panic, and allocation bounded by
 /// the tiff decoder's limits and the 1 MiB chunk cache whatever the header
