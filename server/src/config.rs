@@ -19,7 +19,7 @@
 //! max_pending_handshakes = 256      # pre-auth connections (own budget)
 //! retry_above_pending = 64          # QUIC Retry beyond this many pending
 //! max_connections_per_address = 64  # per client IP, pending + established
-//! max_failed_hellos_per_minute = 30 # per client IP; then `rate_limited`
+//! max_failed_hellos_per_minute = 30 # per client IP; then refused before TLS
 //! storage = "pread"                 # "pread" | "mmap" | "auto"
 //!
 //! [[database]]
@@ -333,8 +333,9 @@ pub struct ServerConfig {
     /// Connections (pending and established) one client IP may hold.
     pub max_connections_per_address: usize,
     /// Failed `Hello`s one client IP may send per minute (burst of the same
-    /// size); beyond it every `Hello` from that IP, right or wrong, is
-    /// refused with `rate_limited` until the budget refills. 0 = unlimited.
+    /// size); beyond it every connection from that IP is refused before its
+    /// TLS handshake (a `Hello` already under way, right or wrong, gets
+    /// `rate_limited`) until the budget refills. 0 = unlimited.
     pub max_failed_hellos_per_minute: u32,
     /// How record bytes are read (see [`StorageMode`]).
     pub storage: StorageMode,

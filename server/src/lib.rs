@@ -454,6 +454,16 @@ async fn accept_loop(
             }
             continue;
         }
+        // An address that spent its failed-hello budget is refused before
+        // any cryptography: a wrong-token flood costs one stateless packet
+        // per attempt, not a TLS handshake (its hellos would be answered
+        // `rate_limited` anyway).
+        if !shared.failed_hellos.allows(peer.ip()) {
+            count("refused");
+            tracing::debug!(%peer, "failed-hello budget spent, refusing");
+            incoming.refuse();
+            continue;
+        }
         let Some(address) = AddressGuard::try_new(&shared, peer.ip()) else {
             count("refused");
             tracing::debug!(%peer, "per-address connection limit reached, refusing");

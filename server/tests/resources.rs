@@ -854,24 +854,46 @@ fn connections_and_failed_hellos_are_limited_per_address() {
             let (addr, tls) = (h.local_addr(), tls_for(&h));
             async move { Connection::connect_on(&ep, addr, "localhost", tls, hello, opts).await }
         };
-        // Failed hellos: 5 are answered `unauthorized`, then every hello
-        // from that address is `rate_limited`, the right token included.
-        for i in 0..8 {
+        // Failed hellos: 5 are answered `unauthorized`; then every
+        // connection from that address is refused before its handshake
+        // (no TLS work for the server), the right token included.
+        for i in 0..5 {
             let r = on(&attacker, Hello::new("acme", format!("guess{i}"), "earth")).await;
-            let want = if i < 5 {
-                ErrorCode::Unauthorized
-            } else {
-                ErrorCode::RateLimited
-            };
             match r {
-                Err(NetError::Rejected(e)) => assert_eq!(e.code, want, "hello {i}"),
+                Err(NetError::Rejected(e)) => {
+                    assert_eq!(e.code, ErrorCode::Unauthorized, "hello {i}")
+                }
                 other => panic!("hello {i}: {:?}", other.err()),
             }
         }
-        match on(&attacker, acme()).await {
-            Err(NetError::Rejected(e)) => assert_eq!(e.code, ErrorCode::RateLimited),
-            other => panic!("{:?}", other.err()),
+        let before = metric(
+            &scrape(&h).await,
+            "planet_connections_total",
+            &[("outcome", "refused")],
+        );
+        for i in 5..8 {
+            let r = on(&attacker, Hello::new("acme", format!("guess{i}"), "earth")).await;
+            match r {
+                Err(NetError::ConnectionLost { reason, .. }) => {
+                    assert!(reason.contains("refused"), "hello {i}: {reason}")
+                }
+                other => panic!("hello {i}: {:?}", other.err()),
+            }
         }
+        assert!(on(&attacker, acme()).await.is_err());
+        let text = scrape(&h).await;
+        assert_eq!(
+            metric(&text, "planet_connections_total", &[("outcome", "refused")]) - before,
+            4.0
+        );
+        assert_eq!(
+            metric(
+                &text,
+                "planet_handshakes_total",
+                &[("outcome", "unauthorized")]
+            ),
+            5.0
+        );
         // Another address is not affected.
         let (good, _) = connect(&h, acme()).await.unwrap();
         let (off, size) = recs[0];
@@ -885,14 +907,7 @@ fn connections_and_failed_hellos_are_limited_per_address() {
         }
         assert!(on(&third, acme()).await.is_err(), "4th connection accepted");
         let text = scrape(&h).await;
-        assert!(metric(&text, "planet_connections_total", &[("outcome", "refused")]) >= 1.0);
-        assert!(
-            metric(
-                &text,
-                "planet_handshakes_total",
-                &[("outcome", "rate_limited")]
-            ) >= 4.0
-        );
+        assert!(metric(&text, "planet_connections_total", &[("outcome", "refused")]) >= 5.0);
         // Closing one frees its place.
         held.pop().unwrap().close();
         tokio::time::sleep(Duration::from_millis(200)).await;
