@@ -346,54 +346,13 @@ fn repair_db_file(file: &mut [u8]) {
 /// each of its records, for a record with a wrong size, inside a record,
 /// and outside the record area.
 pub fn db_open_request_seed(flags: u8) -> Vec<u8> {
-    use planet_core::codec::Payload;
-    use planet_core::format::{encode_record, ChildRef, DbWriter, Tree, TreeInfo};
-    use planet_core::{BlockId, Datum, Face};
-
     let path =
         std::env::temp_dir().join(format!("planet-fuzz-seed-{}.planetdb", std::process::id()));
-    let mut w = DbWriter::create(&path).expect("create the seed database");
-    let mut recs = Vec::new();
-    let child_ref = |(offset, size): (u64, u32)| ChildRef {
-        offset,
-        size,
-        error: 1.0,
-        min_elevation: -5.0,
-        max_elevation: 5.0,
-    };
-    let mut roots = [ChildRef::default(); 6];
-    for (f, face) in Face::ALL.iter().enumerate() {
-        let root = BlockId::root(*face);
-        let mut kids = Vec::new();
-        for (k, child) in root.children().iter().enumerate() {
-            let raw: Vec<u8> = (0..20 + k).map(|i| (i * 7 + f) as u8).collect();
-            let rec = encode_record(Tree::Elevation, *child, &[], &Payload::lz4(&raw));
-            let at = w.append(&rec).expect("append");
-            recs.push(at);
-            kids.push(child_ref(at));
-        }
-        let rec = encode_record(Tree::Elevation, root, &kids, &Payload::lz4(&[f as u8; 30]));
-        let at = w.append(&rec).expect("append");
-        recs.push(at);
-        roots[f] = child_ref(at);
-    }
-    let header = Header {
-        datum: Datum::WGS84,
-        elevation_scale: 1.0,
-        elevation_offset: 0.0,
-        min_elevation: -5.0,
-        max_elevation: 5.0,
-        elevation: TreeInfo {
-            block_width: 4,
-            codec: ElevationCodec::Legacy,
-            max_level: 1,
-            root_records: roots,
-            root_first_lods: std::array::from_fn(|_| vec![0i16; 9]),
-        },
-        colour: None,
-        description: "fuzz seed".into(),
-    };
-    w.finish(&header).expect("finish the seed database");
+    let recs = crate::testdb::write_two_level_db(&path, 4, "fuzz seed", |f, k| match k {
+        Some(k) => (0..20 + k).map(|i| (i * 7 + f) as u8).collect(),
+        None => vec![f as u8; 30],
+    })
+    .expect("write the seed database");
     let file = std::fs::read(&path).expect("read the seed database");
     let _ = std::fs::remove_file(&path);
     let (o0, s0) = recs[0];

@@ -320,3 +320,65 @@ impl FakeServer {
         self.pending.len()
     }
 }
+
+/// Writes a small two-level database file at `path` (elevation tree only,
+/// WGS84, block width `block_width`, elevations −5…5 m): per face a root
+/// record with its four children as leaves, each payload `payload(face,
+/// Some(child))` or `payload(face, None)` for the root, stored lz4. The
+/// payloads are never decoded. Returns every record's `(offset, size)` in
+/// file order (per face: the four children, then the root).
+pub fn write_two_level_db(
+    path: &std::path::Path,
+    block_width: u16,
+    description: &str,
+    payload: impl Fn(usize, Option<usize>) -> Vec<u8>,
+) -> std::io::Result<Vec<(u64, u32)>> {
+    use planet_core::codec::Payload;
+    use planet_core::format::DbWriter;
+    let child_ref = |(offset, size): (u64, u32)| ChildRef {
+        offset,
+        size,
+        error: 1.0,
+        min_elevation: -5.0,
+        max_elevation: 5.0,
+    };
+    let mut w = DbWriter::create(path)?;
+    let mut all = Vec::new();
+    let mut roots = [ChildRef::default(); 6];
+    for (f, face) in Face::ALL.iter().enumerate() {
+        let root = BlockId::root(*face);
+        let mut kids = Vec::new();
+        for (k, child) in root.children().iter().enumerate() {
+            let raw = Payload::lz4(&payload(f, Some(k)));
+            let at = w.append(&encode_record(Tree::Elevation, *child, &[], &raw))?;
+            all.push(at);
+            kids.push(child_ref(at));
+        }
+        let raw = Payload::lz4(&payload(f, None));
+        let at = w.append(&encode_record(Tree::Elevation, root, &kids, &raw))?;
+        all.push(at);
+        roots[f] = child_ref(at);
+    }
+    let first_lod = (usize::from(block_width) / 2 + 1).pow(2);
+    let header = Header {
+        datum: Datum::WGS84,
+        elevation_scale: 1.0,
+        elevation_offset: 0.0,
+        min_elevation: -5.0,
+        max_elevation: 5.0,
+        elevation: TreeInfo {
+            block_width,
+            // The payloads are never decoded: any codec id will do.
+            codec: ElevationCodec::Legacy,
+            max_level: 1,
+            root_records: roots,
+            root_first_lods: std::array::from_fn(|f| {
+                (0..first_lod).map(|v| (v + f) as i16).collect()
+            }),
+        },
+        colour: None,
+        description: description.to_string(),
+    };
+    w.finish(&header)?;
+    Ok(all)
+}

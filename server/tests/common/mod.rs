@@ -7,11 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
-use planet_core::codec::{ElevationCodec, Payload};
-use planet_core::format::{
-    encode_record, parse_record, ChildRef, DbWriter, Header, Tree, TreeInfo,
-};
-use planet_core::{BlockId, Datum, Face};
+use planet_core::format::{parse_record, ChildRef, Header};
 use planet_protocol::{Hello, Welcome};
 use planet_server::{DatabaseConfig, ServerConfig, ServerHandle, TenantConfig, TlsSource};
 use planet_session::net::{ConnectOptions, Connection, NetError};
@@ -30,16 +26,6 @@ fn noise(seed: u64, n: usize) -> Vec<u8> {
         .collect()
 }
 
-fn child_ref(offset: u64, size: u32) -> ChildRef {
-    ChildRef {
-        offset,
-        size,
-        error: 1.0,
-        min_elevation: -5.0,
-        max_elevation: 5.0,
-    }
-}
-
 /// Writes a database: per face a root record with 4 leaf children; payload
 /// sizes ~1-2 KB. Returns every record's (offset, size).
 pub fn build_db(path: &Path, seed: u64) -> Vec<(u64, u32)> {
@@ -48,48 +34,16 @@ pub fn build_db(path: &Path, seed: u64) -> Vec<(u64, u32)> {
 
 /// [`build_db`] with `extra` more payload bytes in every leaf record.
 pub fn build_db_with(path: &Path, seed: u64, extra: usize) -> Vec<(u64, u32)> {
-    let mut w = DbWriter::create(path).expect("create db");
-    let mut all = Vec::new();
-    let mut roots = [ChildRef::default(); 6];
-    for (f, face) in Face::ALL.iter().enumerate() {
-        let root = BlockId::root(*face);
-        let mut kids = Vec::new();
-        for (k, child) in root.children().iter().enumerate() {
-            let payload = noise(
+    planet_testkit::testdb::write_two_level_db(path, 8, &format!("test db seed {seed}"), |f, k| {
+        match k {
+            Some(k) => noise(
                 seed * 1000 + (f * 10 + k) as u64,
                 1000 + 97 * k + 13 * f + extra,
-            );
-            let rec = encode_record(Tree::Elevation, *child, &[], &Payload::lz4(&payload));
-            let (off, size) = w.append(&rec).expect("append");
-            all.push((off, size));
-            kids.push(child_ref(off, size));
+            ),
+            None => noise(seed * 1000 + 900 + f as u64, 1500),
         }
-        let payload = noise(seed * 1000 + 900 + f as u64, 1500);
-        let rec = encode_record(Tree::Elevation, root, &kids, &Payload::lz4(&payload));
-        let (off, size) = w.append(&rec).expect("append");
-        all.push((off, size));
-        roots[f] = child_ref(off, size);
-    }
-    let eh = (8usize / 2 + 1).pow(2);
-    let header = Header {
-        datum: Datum::WGS84,
-        elevation_scale: 1.0,
-        elevation_offset: 0.0,
-        min_elevation: -5.0,
-        max_elevation: 5.0,
-        elevation: TreeInfo {
-            block_width: 8,
-            // The payloads are noise, never decoded: any codec id will do.
-            codec: ElevationCodec::Legacy,
-            max_level: 1,
-            root_records: roots,
-            root_first_lods: std::array::from_fn(|f| (0..eh).map(|v| (v + f) as i16).collect()),
-        },
-        colour: None,
-        description: format!("test db seed {seed}"),
-    };
-    w.finish(&header).expect("finish");
-    all
+    })
+    .expect("write the test database")
 }
 
 /// A config with databases `earth` (and `mars`) and tenants `acme` (earth,
