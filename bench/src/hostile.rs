@@ -15,9 +15,13 @@
 //!
 //! Hostile loops bind 127.0.0.2, 127.0.0.3, ... (`--addresses`) so that the
 //! per-address cap does not stop them alone; the good client is 127.0.0.1.
-//! Per kind: the good client's throughput alone (records/s with 8 requests
-//! in flight) and under attack, fresh good connections' connect times
-//! (Welcome received) under attack, the server's RSS (VmRSS, sampled every
+//! The good client reaches the server through a simulated link (`--link`,
+//! default 50 Mbit/s and 20 ms each way; `none` for raw loopback) with 64
+//! requests in flight; the hostile loops' threads run 10 nice levels below
+//! it and the server (`--attacker-nice`), standing for other hosts.
+//! Per kind: the good client's throughput (MB/s) alone and under attack,
+//! fresh good connections' connect times (Welcome received, through the
+//! link) under attack, the server's CPU (cores) alone and under attack, the server's RSS (VmRSS, sampled every
 //! 200 ms) before and at its peak, the hostile connections the server held
 //! at once (peak of `planet_connections_active` − 1, scraped; it includes
 //! pending connections), and the pre-auth outcome counters. Memory per hostile
@@ -35,8 +39,8 @@ use planet_protocol::Hello;
 use planet_session::net::Connection;
 
 use crate::server::{
-    bench_connect_options, default_server_bin, proc_rss, raise_nofile_limit, request_list,
-    resolve_db, spawn_server, Req,
+    bench_connect_options, default_server_bin, proc_cpu_seconds, proc_rss, raise_nofile_limit,
+    request_list, resolve_db, spawn_server, Req,
 };
 
 /// `planet-bench hostile` arguments.
@@ -67,6 +71,25 @@ pub struct HostileArgs {
     /// as soon as the server closed the previous connection).
     #[arg(long, default_value_t = 0)]
     pub pace_ms: u64,
+    /// Added to the nice value of the hostile loops' threads (0–19). The
+    /// attackers stand for other hosts: at 10 the server and the good client
+    /// get the CPU they share with them first, so that the attackers' own
+    /// TLS work is not counted against the server (the table shows the
+    /// attack rate they still reach). 0 runs them at the same priority.
+    #[arg(long, default_value_t = 10)]
+    pub attacker_nice: i32,
+    /// The good client's link to the server (planet-linksim spec, both
+    /// directions), or `none` for raw loopback. A good client is a viewer
+    /// on a network, not a process beside the server: through a link its
+    /// throughput measures what the server still gives it, where on raw
+    /// loopback 0.2 ms requests measure the scheduling noise of the 2 cores
+    /// that the server, the good client and the attackers share.
+    #[arg(long, default_value = "50mbit,20ms")]
+    pub link: String,
+    /// The good client's requests in flight (default: the server's default
+    /// per-session limit, `max_in_flight`).
+    #[arg(long, default_value_t = 64)]
+    pub in_flight: usize,
     /// Write the results as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -235,23 +258,38 @@ async fn hostile_loop(
     }
 }
 
-/// Fetches `reqs` cyclically with 8 in flight for `secs`: records/s.
-async fn good_run(conn: &Connection, reqs: &Arc<Vec<Req>>, secs: f64) -> Result<f64> {
+/// Fetches `reqs` cyclically with `in_flight` requests in flight for
+/// `secs`: (records/s, MB/s).
+async fn good_run(
+    conn: &Connection,
+    reqs: &Arc<Vec<Req>>,
+    secs: f64,
+    in_flight: usize,
+) -> Result<(f64, f64)> {
     let next = Arc::new(AtomicU64::new(0));
     let done = Arc::new(AtomicU64::new(0));
+    let bytes = Arc::new(AtomicU64::new(0));
     let until = Instant::now() + Duration::from_secs_f64(secs);
     let start = Instant::now();
     let mut workers = Vec::new();
-    for _ in 0..8 {
-        let (conn, reqs, next, done) = (conn.clone(), reqs.clone(), next.clone(), done.clone());
+    for _ in 0..in_flight.max(1) {
+        let (conn, reqs, next, done, bytes) = (
+            conn.clone(),
+            reqs.clone(),
+            next.clone(),
+            done.clone(),
+            bytes.clone(),
+        );
         workers.push(tokio::spawn(async move {
             while Instant::now() < until {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let r = reqs[i as usize % reqs.len()];
-                conn.fetch(i + 1, r.offset, r.size)
+                let got = conn
+                    .fetch(i + 1, r.offset, r.size)
                     .await
                     .map_err(|e| anyhow!("good client: {e}"))?;
                 done.fetch_add(1, Ordering::Relaxed);
+                bytes.fetch_add(got.len() as u64, Ordering::Relaxed);
             }
             Ok::<(), anyhow::Error>(())
         }));
@@ -259,7 +297,11 @@ async fn good_run(conn: &Connection, reqs: &Arc<Vec<Req>>, secs: f64) -> Result<
     for w in workers {
         w.await??;
     }
-    Ok(done.load(Ordering::Relaxed) as f64 / start.elapsed().as_secs_f64())
+    let secs = start.elapsed().as_secs_f64();
+    Ok((
+        done.load(Ordering::Relaxed) as f64 / secs,
+        bytes.load(Ordering::Relaxed) as f64 / 1e6 / secs,
+    ))
 }
 
 /// Results of one kind.
@@ -268,12 +310,18 @@ struct KindResult {
     kind: String,
     clients: usize,
     hostile_attempts: u64,
+    hostile_attempts_per_s: f64,
     peak_hostile_connections: f64,
+    server_cores_alone: f64,
+    server_cores_under_attack: f64,
     connect_ms_median: f64,
     connect_ms_max: f64,
     connect_failures: usize,
+    link: String,
     baseline_records_per_s: f64,
     attack_records_per_s: f64,
+    baseline_mb_per_s: f64,
+    attack_mb_per_s: f64,
     ratio: f64,
     rss_before_mb: f64,
     rss_peak_mb: f64,
@@ -303,10 +351,31 @@ pub fn run(args: HostileArgs) -> Result<()> {
         .worker_threads(2)
         .enable_all()
         .build()?;
+    let nice = args.attacker_nice.clamp(0, 19);
     let bad_rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
+        // Linux nice values are per thread.
+        .on_thread_start(move || {
+            let _ = rustix::process::nice(nice);
+        })
         .enable_all()
         .build()?;
+    // The good client's way to the server.
+    let link = match args.link.trim() {
+        "none" => None,
+        spec => {
+            let cfg: planet_linksim::LinkConfig =
+                spec.parse().map_err(|e| anyhow!("--link {spec:?}: {e}"))?;
+            Some(good_rt.block_on(planet_linksim::Link::start_symmetric(srv.addr, cfg))?)
+        }
+    };
+    let good_addr = link.as_ref().map_or(srv.addr, |l| l.local_addr());
+    println!(
+        "good client: {} in flight, link {}",
+        args.in_flight,
+        link.as_ref()
+            .map_or("none (loopback)".to_string(), |_| args.link.clone())
+    );
     let hello = Hello::new("public", "", srv.database.clone());
     let tls = planet_session::tls::pinned(&srv.fingerprint)?;
     let opts = bench_connect_options();
@@ -325,7 +394,7 @@ pub fn run(args: HostileArgs) -> Result<()> {
     let mut results = Vec::new();
     for kind in kinds {
         let (good, _) = good_rt.block_on(Connection::connect_with(
-            srv.addr,
+            good_addr,
             "localhost",
             tls.clone(),
             hello.clone(),
@@ -334,7 +403,11 @@ pub fn run(args: HostileArgs) -> Result<()> {
         std::thread::sleep(Duration::from_millis(500));
         let before = scrape(srv.metrics)?;
         let rss_before = proc_rss(pid).map_or(0, |r| r.0);
-        let baseline = good_rt.block_on(good_run(&good, &reqs, args.seconds))?;
+        let cpu0 = proc_cpu_seconds(pid).unwrap_or(0.0);
+        let t0 = Instant::now();
+        let baseline = good_rt.block_on(good_run(&good, &reqs, args.seconds, args.in_flight))?;
+        let cores_alone =
+            (proc_cpu_seconds(pid).unwrap_or(0.0) - cpu0) / t0.elapsed().as_secs_f64();
 
         // The attack.
         let stop = Arc::new(AtomicBool::new(false));
@@ -387,8 +460,13 @@ pub fn run(args: HostileArgs) -> Result<()> {
             })
         };
         std::thread::sleep(Duration::from_secs(2));
+        let (cpu1, t1, attempts1) = (
+            proc_cpu_seconds(pid).unwrap_or(0.0),
+            Instant::now(),
+            attempts.load(Ordering::Relaxed),
+        );
         let under = good_rt.block_on(async {
-            let run = good_run(&good, &reqs, args.seconds);
+            let run = good_run(&good, &reqs, args.seconds, args.in_flight);
             let connects = async {
                 let mut times = Vec::new();
                 let mut failures = 0;
@@ -396,7 +474,7 @@ pub fn run(args: HostileArgs) -> Result<()> {
                 while Instant::now() < until {
                     let t0 = Instant::now();
                     match Connection::connect_with(
-                        srv.addr,
+                        good_addr,
                         "localhost",
                         tls.clone(),
                         hello.clone(),
@@ -418,6 +496,9 @@ pub fn run(args: HostileArgs) -> Result<()> {
             r.map(|r| (r, c))
         })?;
         let (attack_rate, (mut times, connect_failures)) = under;
+        let attack_secs = t1.elapsed().as_secs_f64();
+        let cores_attack = (proc_cpu_seconds(pid).unwrap_or(0.0) - cpu1) / attack_secs;
+        let attempts_per_s = (attempts.load(Ordering::Relaxed) - attempts1) as f64 / attack_secs;
         stop.store(true, Ordering::Relaxed);
         sampling.store(false, Ordering::Relaxed);
         let (rss_peak, held) = sampler.join().map_err(|_| anyhow!("sampler panicked"))?;
@@ -442,13 +523,21 @@ pub fn run(args: HostileArgs) -> Result<()> {
             kind: kind.name().into(),
             clients: args.clients,
             hostile_attempts: attempts.load(Ordering::Relaxed),
+            hostile_attempts_per_s: attempts_per_s,
             peak_hostile_connections: held,
+            server_cores_alone: cores_alone,
+            server_cores_under_attack: cores_attack,
             connect_ms_median: median,
             connect_ms_max: max,
             connect_failures,
-            baseline_records_per_s: baseline,
-            attack_records_per_s: attack_rate,
-            ratio: attack_rate / baseline,
+            link: link
+                .as_ref()
+                .map_or("none".to_string(), |_| args.link.clone()),
+            baseline_records_per_s: baseline.0,
+            attack_records_per_s: attack_rate.0,
+            baseline_mb_per_s: baseline.1,
+            attack_mb_per_s: attack_rate.1,
+            ratio: attack_rate.1 / baseline.1,
             rss_before_mb: mb(rss_before),
             rss_peak_mb: mb(rss_peak),
             rss_after_mb: mb(rss_after),
@@ -467,22 +556,24 @@ pub fn run(args: HostileArgs) -> Result<()> {
     }
     println!();
     println!(
-        "| kind | hostile loops | attempts | held at once | good connect p50 / max (ms) | connect failures | alone (rec/s) | under attack (rec/s) | ratio | server RSS before / peak / after (MB) | kB per held connection | timeout | unauthorized | rate_limited | refused | retry | rejected |"
+        "| kind | hostile loops | attempts/s | held at once | good connect p50 / max (ms) | connect failures | alone (MB/s) | under attack (MB/s) | ratio | server cores alone / attacked | server RSS before / peak / after (MB) | kB per held connection | timeout | unauthorized | rate_limited | refused | retry | rejected |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for r in &results {
         println!(
-            "| {} | {} | {} | {:.0} | {:.1} / {:.1} | {} | {:.0} | {:.0} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            "| {} | {} | {:.0} | {:.0} | {:.1} / {:.1} | {} | {:.1} | {:.1} | {:.2} | {:.2} / {:.2} | {:.1} / {:.1} / {:.1} | {:.1} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
             r.kind,
             r.clients,
-            r.hostile_attempts,
+            r.hostile_attempts_per_s,
             r.peak_hostile_connections,
             r.connect_ms_median,
             r.connect_ms_max,
             r.connect_failures,
-            r.baseline_records_per_s,
-            r.attack_records_per_s,
+            r.baseline_mb_per_s,
+            r.attack_mb_per_s,
             r.ratio,
+            r.server_cores_alone,
+            r.server_cores_under_attack,
             r.rss_before_mb,
             r.rss_peak_mb,
             r.rss_after_mb,

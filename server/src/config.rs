@@ -20,6 +20,8 @@
 //! retry_above_pending = 64          # QUIC Retry beyond this many pending
 //! max_connections_per_address = 64  # per client IP, pending + established
 //! max_failed_hellos_per_minute = 30 # per client IP; then refused before TLS
+//! max_handshakes_per_address_per_second = 10  # new connections per client IP
+//!                                   # (burst: max_connections_per_address or more)
 //! storage = "pread"                 # "pread" | "mmap" | "auto"
 //!
 //! [[database]]
@@ -189,6 +191,8 @@ pub const DEFAULT_RETRY_ABOVE_PENDING: usize = 64;
 pub const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: usize = 64;
 /// Default [`ServerConfig::max_failed_hellos_per_minute`].
 pub const DEFAULT_MAX_FAILED_HELLOS_PER_MINUTE: u32 = 30;
+/// Default [`ServerConfig::max_handshakes_per_address_per_second`].
+pub const DEFAULT_MAX_HANDSHAKES_PER_ADDRESS_PER_SECOND: u32 = 10;
 
 /// How record bytes are read from database files (docs/SECURITY.md,
 /// "Storage faults").
@@ -337,6 +341,14 @@ pub struct ServerConfig {
     /// TLS handshake (a `Hello` already under way, right or wrong, gets
     /// `rate_limited`) until the budget refills. 0 = unlimited.
     pub max_failed_hellos_per_minute: u32,
+    /// New connections (TLS handshakes) one client IP may start per second,
+    /// with a burst of `max_connections_per_address` or one second's worth,
+    /// whichever is larger: an address may open its whole allowance at
+    /// once, then this many more per second. Beyond
+    /// it connections are refused before any cryptography, so a handshake
+    /// flood from a few addresses costs the server stateless packets, not
+    /// TLS work. 0 = unlimited.
+    pub max_handshakes_per_address_per_second: u32,
     /// How record bytes are read (see [`StorageMode`]).
     pub storage: StorageMode,
     /// Development mode: empty, short, low-entropy or placeholder tokens
@@ -376,6 +388,7 @@ struct FileConfig {
     retry_above_pending: Option<usize>,
     max_connections_per_address: Option<usize>,
     max_failed_hellos_per_minute: Option<u32>,
+    max_handshakes_per_address_per_second: Option<u32>,
     storage: Option<String>,
     #[serde(default)]
     database: Vec<FileDatabase>,
@@ -489,6 +502,7 @@ impl ServerConfig {
             retry_above_pending: DEFAULT_RETRY_ABOVE_PENDING,
             max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
             max_failed_hellos_per_minute: DEFAULT_MAX_FAILED_HELLOS_PER_MINUTE,
+            max_handshakes_per_address_per_second: DEFAULT_MAX_HANDSHAKES_PER_ADDRESS_PER_SECOND,
             storage: StorageMode::Pread,
             dev: false,
         }
@@ -578,6 +592,9 @@ impl ServerConfig {
         }
         if let Some(m) = file.max_failed_hellos_per_minute {
             cfg.max_failed_hellos_per_minute = m;
+        }
+        if let Some(m) = file.max_handshakes_per_address_per_second {
+            cfg.max_handshakes_per_address_per_second = m;
         }
         if let Some(s) = &file.storage {
             cfg.storage = s.parse()?;

@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use futures_util::stream::{FuturesUnordered, StreamExt};
+use futures_util::FutureExt;
 use planet_core::format::record_checksum_ok;
 use planet_protocol::{
     decode_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight, Limits,
@@ -29,6 +30,7 @@ const REQUEST_READ_TIMEOUT: Duration = Duration::from_secs(10);
 /// stream gets to be written and reach the client: a peer that does not
 /// read (or advertises a zero window) cannot hold the connection with it.
 const FLUSH_TIMEOUT: Duration = Duration::from_millis(500);
+
 /// Streams allowed beyond `max_in_flight` (the control stream, plus slack
 /// so that an over-eager client gets `too_many_in_flight` heads rather than
 /// silently blocking in `open_bi`).
@@ -229,6 +231,8 @@ enum Step {
     Shutdown,
     Deadline,
     HelloTimeout,
+    /// Another address's newcomer took this pending slot (`pending.rs`).
+    Evicted,
 }
 
 /// Why the connection loop ended, i.e. how to close.
@@ -250,9 +254,14 @@ pub(crate) async fn serve_connection(
     mut pending: PendingGuard,
 ) {
     let peer = conn.remote_address();
+    let evict = pending.eviction();
     let first = tokio::select! {
         r = conn.accept_bi() => Some(r),
         _ = tokio::time::sleep_until(deadline) => None,
+        _ = evict.notified() => {
+            evicted(&conn, &shared, peer);
+            return;
+        }
         _ = shutdown.wait_for(|s| *s) => {
             shared.metrics.handshake(HandshakeEnd::Lost);
             conn.close(code(quic::CONNECTION_CLOSED_SHUTDOWN), b"shutting down");
@@ -311,6 +320,7 @@ pub(crate) async fn serve_connection(
             _ = shutdown.wait_for(|s| *s), if draining.is_none() => Step::Shutdown,
             _ = sleep_until_opt(deadline), if deadline.is_some() => Step::Deadline,
             _ = tokio::time::sleep_until(hello_deadline), if !established && draining.is_none() => Step::HelloTimeout,
+            _ = evict.notified(), if !established && draining.is_none() => Step::Evicted,
         };
         match step {
             Step::Ctrl(Ok(Some(chunk))) => {
@@ -330,30 +340,50 @@ pub(crate) async fn serve_connection(
                                 break;
                             };
                             let tenant = Arc::clone(&slot.0);
-                            // The Welcome must be written whole within the
-                            // handshake deadline: a client with a zero
-                            // receive window cannot keep its slot with it.
-                            match tokio::time::timeout_at(
-                                hello_deadline,
-                                ctrl_send.write_all(&reply),
-                            )
-                            .await
-                            {
+                            // Writing the Welcome must make progress at
+                            // once: it is a few hundred bytes, and quinn
+                            // takes stream data as soon as the peer's
+                            // flow-control credit (its transport parameters)
+                            // allows, without a round trip. A client that
+                            // advertised no window at all would otherwise
+                            // hold a place of `max_connections` (taken
+                            // above) until the handshake deadline (ISSUE
+                            // #17). A small window that the client opens as
+                            // it reads may take the rest of the deadline,
+                            // during which the slot stays evictable.
+                            let write = match ctrl_send.write(&reply).now_or_never() {
+                                None | Some(Ok(0)) => Err(HandshakeEnd::Timeout),
+                                Some(Err(e)) => Ok(Err(e)),
+                                Some(Ok(n)) => tokio::select! {
+                                    r = tokio::time::timeout_at(
+                                        hello_deadline,
+                                        ctrl_send.write_all(&reply[n..]),
+                                    ) => r.map_err(|_| HandshakeEnd::Timeout),
+                                    _ = evict.notified() => Err(HandshakeEnd::Evicted),
+                                },
+                            };
+                            match write {
                                 Ok(Ok(())) => {}
                                 Ok(Err(e)) => {
                                     tracing::debug!(%peer, error = %e, "cannot write welcome");
                                     break;
                                 }
-                                Err(_) => {
-                                    tracing::debug!(%peer, "welcome not written within the handshake timeout");
+                                Err(end) => {
+                                    tracing::debug!(%peer, outcome = end.as_str(), "welcome not written within the handshake phase");
                                     handshake_counted = true;
-                                    shared.metrics.handshake(HandshakeEnd::Timeout);
+                                    shared.metrics.handshake(end);
                                     timed_out = true;
                                     break;
                                 }
                             }
                             handshake_counted = true;
-                            pending.release();
+                            if !pending.release() {
+                                // Evicted while the Welcome was written.
+                                timed_out = true;
+                                let _ = abort_tx.send(true);
+                                evicted(&conn, &shared, peer);
+                                break;
+                            }
                             shared.metrics.handshake(HandshakeEnd::Ok);
                             conn.set_max_concurrent_bi_streams(VarInt::from_u32(
                                 welcome.limits.max_in_flight + 1 + STREAM_MARGIN,
@@ -482,6 +512,12 @@ pub(crate) async fn serve_connection(
                     });
                 break End::Close(c, r);
             }
+            Step::Evicted => {
+                handshake_counted = true;
+                let _ = abort_tx.send(true);
+                evicted(&conn, &shared, peer);
+                break End::Lost;
+            }
             Step::HelloTimeout => {
                 if !handshake_counted {
                     handshake_counted = true;
@@ -517,6 +553,17 @@ pub(crate) async fn serve_connection(
         mtu_probes_lost = stats.path.lost_plpmtud_probes,
         black_holes = stats.path.black_holes_detected,
         "connection ended"
+    );
+}
+
+/// Closes a pending connection whose slot another address took
+/// (`pending.rs`), with `server_busy`.
+fn evicted(conn: &quinn::Connection, shared: &Shared, peer: std::net::SocketAddr) {
+    shared.metrics.handshake(HandshakeEnd::Evicted);
+    tracing::debug!(%peer, "pending slot taken by another address, closing");
+    conn.close(
+        code(ErrorCode::ServerBusy.to_quic()),
+        b"pre-authentication slots full",
     );
 }
 

@@ -19,6 +19,7 @@ mod conn;
 pub mod db;
 pub mod limit;
 pub mod metrics;
+mod pending;
 pub mod tls;
 pub mod token;
 pub mod udp;
@@ -96,12 +97,14 @@ pub(crate) struct Shared {
     active: AtomicUsize,
     /// Established sessions (`max_connections`).
     pub(crate) sessions: AtomicUsize,
-    /// Connections not yet authenticated.
-    pending: AtomicUsize,
+    /// Connections not yet authenticated (`max_pending_handshakes`).
+    pending: pending::PendingTable,
     /// Open connections (pending and established) per client IP.
     per_address: Mutex<HashMap<IpAddr, usize>>,
     /// Failed hellos per client IP.
     pub(crate) failed_hellos: limit::KeyedBuckets,
+    /// New connections per client IP.
+    handshakes: limit::KeyedBuckets,
     /// Log and alert rate limit per failing record.
     pub(crate) record_alerts: limit::RecordAlerts,
 }
@@ -181,29 +184,61 @@ impl Drop for AddressGuard {
     }
 }
 
-/// An unauthenticated connection (`max_pending_handshakes`): released when
-/// its session is established or the connection ends.
-pub(crate) struct PendingGuard(Option<Arc<Shared>>);
+/// An unauthenticated connection's slot in [`pending::PendingTable`]:
+/// given back when its session is established or the connection ends.
+pub(crate) struct PendingGuard {
+    shared: Option<Arc<Shared>>,
+    ip: IpAddr,
+    id: u64,
+    evict: Arc<tokio::sync::Notify>,
+}
 
 impl PendingGuard {
-    fn new(shared: &Arc<Shared>) -> PendingGuard {
-        shared.pending.fetch_add(1, Ordering::AcqRel);
-        shared.metrics.handshakes_pending.inc();
-        PendingGuard(Some(Arc::clone(shared)))
+    /// A slot for a connection from `ip`, possibly by evicting another
+    /// address's oldest pending connection; `None` when there is none.
+    fn admit(shared: &Arc<Shared>, ip: IpAddr) -> Option<PendingGuard> {
+        let a = shared
+            .pending
+            .admit(ip, shared.cfg.max_pending_handshakes)?;
+        if a.evicted_other {
+            tracing::debug!(%ip, "pending budget full: took the slot of a busier address");
+        }
+        shared
+            .metrics
+            .handshakes_pending
+            .set(i64::try_from(shared.pending.len()).unwrap_or(i64::MAX));
+        Some(PendingGuard {
+            shared: Some(Arc::clone(shared)),
+            ip,
+            id: a.id,
+            evict: a.evict,
+        })
     }
 
-    /// The session is authenticated: no longer pending.
-    pub(crate) fn release(&mut self) {
-        if let Some(shared) = self.0.take() {
-            shared.pending.fetch_sub(1, Ordering::AcqRel);
-            shared.metrics.handshakes_pending.dec();
-        }
+    /// Notified when a newcomer from another address took this slot.
+    pub(crate) fn eviction(&self) -> Arc<tokio::sync::Notify> {
+        Arc::clone(&self.evict)
+    }
+
+    /// The session is authenticated: no longer pending. `false` if the
+    /// slot had already been taken by eviction (the connection must then
+    /// close, even though its Welcome was written).
+    pub(crate) fn release(&mut self) -> bool {
+        let Some(shared) = self.shared.take() else {
+            return false;
+        };
+        let held = shared.pending.remove(self.ip, self.id);
+        shared
+            .metrics
+            .handshakes_pending
+            .set(i64::try_from(shared.pending.len()).unwrap_or(i64::MAX));
+        held
     }
 }
 
 impl Drop for PendingGuard {
     fn drop(&mut self) {
-        self.release();
+        let _ = self.release();
     }
 }
 
@@ -321,12 +356,18 @@ impl Server {
             tenants,
             dummy_token: Token::new("planet-server: no such tenant"),
             failed_hellos: limit::KeyedBuckets::per_minute(config.max_failed_hellos_per_minute),
+            handshakes: limit::KeyedBuckets::per_second(
+                config.max_handshakes_per_address_per_second,
+                config
+                    .max_connections_per_address
+                    .max(config.max_handshakes_per_address_per_second as usize),
+            ),
             cfg: config,
             metrics,
             http,
             active: AtomicUsize::new(0),
             sessions: AtomicUsize::new(0),
-            pending: AtomicUsize::new(0),
+            pending: pending::PendingTable::default(),
             per_address: Mutex::new(HashMap::new()),
             record_alerts: limit::RecordAlerts::default(),
         });
@@ -435,8 +476,15 @@ async fn accept_loop(
         };
         // Pre-authentication budget, checked before any cryptography:
         // refusing costs one stateless CONNECTION_CLOSE packet.
-        let pending = shared.pending.load(Ordering::Acquire);
-        if pending >= shared.cfg.max_pending_handshakes {
+        // When the budget is full, a newcomer may still take the slot of
+        // the oldest pending connection of the address holding the most
+        // (`pending.rs`), so a flood from a few addresses cannot lock out
+        // everyone else.
+        let pending = shared.pending.len();
+        if !shared
+            .pending
+            .would_admit(peer.ip(), shared.cfg.max_pending_handshakes)
+        {
             count("refused");
             tracing::debug!(%peer, pending, "too many pending handshakes, refusing");
             incoming.refuse();
@@ -464,6 +512,14 @@ async fn accept_loop(
             incoming.refuse();
             continue;
         }
+        // New connections per address: beyond the burst, refused before any
+        // cryptography, so a handshake flood costs stateless packets.
+        if !shared.handshakes.try_spend(peer.ip()) {
+            count("refused");
+            tracing::debug!(%peer, "handshake rate of this address exceeded, refusing");
+            incoming.refuse();
+            continue;
+        }
         let Some(address) = AddressGuard::try_new(&shared, peer.ip()) else {
             count("refused");
             tracing::debug!(%peer, "per-address connection limit reached, refusing");
@@ -483,7 +539,13 @@ async fn accept_loop(
             shared.cfg.handshake_timeout
         };
         let deadline = tokio::time::Instant::now() + timeout;
-        let pending = PendingGuard::new(&shared);
+        let Some(pending) = PendingGuard::admit(&shared, peer.ip()) else {
+            count("refused");
+            tracing::debug!(%peer, "no pending slot, refusing");
+            incoming.refuse();
+            continue;
+        };
+        let evicted = pending.eviction();
         let shared = Arc::clone(&shared);
         let shutdown = shutdown.clone();
         conns.spawn(async move {
@@ -492,15 +554,24 @@ async fn accept_loop(
             shared.metrics.connections_active.inc();
             let guard = ActiveGuard(Arc::clone(&shared));
             let handshake = handshake(incoming, shared.cfg.zero_rtt);
-            let conn = match tokio::time::timeout_at(deadline, handshake).await {
-                Ok(Some(conn)) => conn,
-                Ok(None) => {
-                    shared.metrics.handshake(metrics::HandshakeEnd::Lost);
-                    return;
-                }
-                Err(_) => {
-                    shared.metrics.handshake(metrics::HandshakeEnd::Timeout);
-                    tracing::debug!(%peer, "QUIC handshake not done within the handshake timeout");
+            let conn = tokio::select! {
+                r = tokio::time::timeout_at(deadline, handshake) => match r {
+                    Ok(Some(conn)) => conn,
+                    Ok(None) => {
+                        shared.metrics.handshake(metrics::HandshakeEnd::Lost);
+                        return;
+                    }
+                    Err(_) => {
+                        shared.metrics.handshake(metrics::HandshakeEnd::Timeout);
+                        tracing::debug!(%peer, "QUIC handshake not done within the handshake timeout");
+                        return;
+                    }
+                },
+                _ = evicted.notified() => {
+                    // Dropping the handshake abandons it: quinn closes the
+                    // connection.
+                    shared.metrics.handshake(metrics::HandshakeEnd::Evicted);
+                    tracing::debug!(%peer, "pending slot taken by another address, closing");
                     return;
                 }
             };

@@ -1,6 +1,7 @@
 //! Token buckets: a tenant's bandwidth (`max_bytes_per_second`) and
 //! requests (`max_requests_per_second`), each shared by all the tenant's
-//! connections, and failed hellos per client address ([`KeyedBuckets`]).
+//! connections, and failed hellos and new connections per client address
+//! ([`KeyedBuckets`]).
 //!
 //! A request reserves its size from the bucket (the balance may go negative:
 //! later requests queue behind it, which makes the pacing FIFO-fair across
@@ -128,21 +129,48 @@ const MAX_KEYS: usize = 16_384;
 /// forgotten, and if none is full the oldest half is.
 #[derive(Debug)]
 pub struct KeyedBuckets {
+    /// Events per second.
+    rate: f64,
+    /// Burst (bucket size); 0 = unlimited.
     capacity: f64,
     state: Mutex<HashMap<IpAddr, (f64, Instant)>>,
 }
 
 impl KeyedBuckets {
-    /// `per_minute` events per minute per address; 0 = unlimited.
+    /// `per_minute` events per minute per address, with a burst of the
+    /// same size; 0 = unlimited.
     pub fn per_minute(per_minute: u32) -> KeyedBuckets {
+        KeyedBuckets::new(f64::from(per_minute) / 60.0, f64::from(per_minute))
+    }
+
+    /// `per_second` events per second per address with a burst of `burst`
+    /// (at least one); `per_second` 0 = unlimited.
+    pub fn per_second(per_second: u32, burst: usize) -> KeyedBuckets {
+        if per_second == 0 {
+            return KeyedBuckets::new(0.0, 0.0);
+        }
+        KeyedBuckets::new(f64::from(per_second), burst.max(1) as f64)
+    }
+
+    fn new(rate: f64, capacity: f64) -> KeyedBuckets {
         KeyedBuckets {
-            capacity: f64::from(per_minute),
+            rate,
+            capacity,
             state: Mutex::new(HashMap::new()),
         }
     }
 
     fn refilled(&self, (tokens, last): (f64, Instant), now: Instant) -> f64 {
-        (tokens + now.duration_since(last).as_secs_f64() * self.capacity / 60.0).min(self.capacity)
+        (tokens + now.duration_since(last).as_secs_f64() * self.rate).min(self.capacity)
+    }
+
+    /// Spends one event of `ip`'s budget if it has one left.
+    pub fn try_spend(&self, ip: IpAddr) -> bool {
+        if !self.allows(ip) {
+            return false;
+        }
+        self.spend(ip);
+        true
     }
 
     /// Whether `ip` still has budget (at least one event left).
@@ -255,5 +283,18 @@ mod tests {
             unlimited.spend(a);
         }
         assert!(unlimited.allows(a));
+    }
+
+    #[test]
+    fn per_second_buckets_have_their_own_burst() {
+        let k = KeyedBuckets::per_second(1000, 5);
+        let a: IpAddr = "192.0.2.1".parse().unwrap();
+        let spent = (0..20).filter(|_| k.try_spend(a)).count();
+        // The burst, and at most a few refilled at 1000/s meanwhile.
+        assert!((5..=8).contains(&spent), "{spent}");
+        std::thread::sleep(Duration::from_millis(20));
+        assert!(k.try_spend(a), "refilled at 1000 per second");
+        let unlimited = KeyedBuckets::per_second(0, 5);
+        assert!((0..100).all(|_| unlimited.try_spend(a)));
     }
 }

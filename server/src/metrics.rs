@@ -69,11 +69,14 @@ pub enum HandshakeEnd {
     Timeout,
     /// The peer went away before an outcome.
     Lost,
+    /// The pre-authentication budget was full and a newcomer from an
+    /// address holding fewer pending connections took this one's slot.
+    Evicted,
 }
 
 impl HandshakeEnd {
     /// Every label value, for pre-registration and the contract.
-    pub const LABELS: [&'static str; 10] = [
+    pub const LABELS: [&'static str; 11] = [
         "ok",
         "unauthorized",
         "forbidden",
@@ -84,6 +87,7 @@ impl HandshakeEnd {
         "busy",
         "timeout",
         "lost",
+        "evicted",
     ];
 
     /// The label value.
@@ -93,6 +97,7 @@ impl HandshakeEnd {
             HandshakeEnd::Ok => "ok",
             HandshakeEnd::Timeout => "timeout",
             HandshakeEnd::Lost => "lost",
+            HandshakeEnd::Evicted => "evicted",
             HandshakeEnd::Refused(code) => match code {
                 C::Unauthorized => "unauthorized",
                 C::Forbidden => "forbidden",
