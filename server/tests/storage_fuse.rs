@@ -146,14 +146,6 @@ impl Filesystem for FaultyFs {
 }
 
 /// Prints why the test cannot run here and returns, or fails in CI.
-fn skip(reason: &str) {
-    let set = |v: &str| std::env::var(v).is_ok_and(|x| x == "1");
-    if set("PLANET_CI") || set("PLANET_REQUIRE_ALL") {
-        panic!("{reason} (PLANET_CI or PLANET_REQUIRE_ALL is set: a skip fails)");
-    }
-    eprintln!("storage_fuse: skipped: {reason}");
-}
-
 fn mount(dir: &Path, fs: FaultyFs) -> std::io::Result<fuser::BackgroundSession> {
     let mut cfg = fuser::Config::default();
     cfg.mount_options = vec![MountOption::RO, MountOption::FSName("planet-faulty".into())];
@@ -163,7 +155,7 @@ fn mount(dir: &Path, fs: FaultyFs) -> std::io::Result<fuser::BackgroundSession> 
 #[test]
 fn a_failing_device_gives_storage_errors_then_recovers() {
     if !Path::new("/dev/fuse").exists() {
-        skip("no /dev/fuse");
+        planet_testkit::skip_or_fail("no /dev/fuse");
         return;
     }
     let rt = planet_testkit::runtime(2).expect("tokio runtime");
@@ -184,7 +176,7 @@ fn a_failing_device_gives_storage_errors_then_recovers() {
     ) {
         Ok(s) => s,
         Err(e) => {
-            skip(&format!("cannot mount a FUSE filesystem: {e}"));
+            planet_testkit::skip_or_fail(&format!("cannot mount a FUSE filesystem: {e}"));
             return;
         }
     };

@@ -1,144 +1,26 @@
 //! The nginx peer: HTTPS byte ranges of the same file over HTTP/1.1 and
 //! HTTP/2.
 
-use std::net::{SocketAddr, TcpListener};
+use std::net::SocketAddr;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 
 use super::*;
 
-/// A running nginx serving one file at `/db` over TLS.
-pub struct Nginx {
-    /// Its address.
-    pub addr: SocketAddr,
-    /// Certificate (DER) to trust.
-    pub cert_der: Vec<u8>,
-    child: Child,
-    _prefix: tempfile::TempDir,
+/// nginx serving the database at `/db` (the same server as the HTTP
+/// transport's tests: `planet_testkit::nginx`).
+pub use planet_testkit::nginx::Nginx;
+
+/// Starts `bin` serving `db` at `https://localhost:PORT/db`.
+pub fn start_nginx(bin: &Path, db: &Path, workers: usize) -> Result<Nginx> {
+    Nginx::start_as(bin, db, "db", workers).context("cannot start nginx")
 }
 
-impl Nginx {
-    /// Start `bin` serving `db` at `https://localhost:PORT/db`.
-    pub fn start(bin: &Path, db: &Path, workers: usize) -> Result<Nginx> {
-        let prefix = tempfile::Builder::new()
-            .prefix("planet-bench-nginx")
-            .tempdir()?;
-        let p = prefix.path();
-        std::fs::create_dir_all(p.join("www"))?;
-        std::fs::create_dir_all(p.join("tmp"))?;
-        let db = std::fs::canonicalize(db)?;
-        std::os::unix::fs::symlink(&db, p.join("www/db"))?;
-        let cert =
-            rcgen::generate_simple_self_signed(vec!["localhost".into(), "127.0.0.1".into()])?;
-        std::fs::write(p.join("cert.pem"), cert.cert.pem())?;
-        std::fs::write(p.join("key.pem"), cert.signing_key.serialize_pem())?;
-        let port = TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
-        let addr: SocketAddr = ([127, 0, 0, 1], port).into();
-        // Running as root, workers would switch to `nobody`; keep them as the
-        // current user so they can read the file wherever it is.
-        let user = if rustix::process::geteuid().is_root() {
-            "user root root;"
-        } else {
-            ""
-        };
-        let conf = format!(
-            r#"# written by planet-bench server
-{user}
-daemon off;
-master_process on;
-worker_processes {workers};
-worker_rlimit_nofile 65536;
-error_log {p}/error.log warn;
-pid {p}/nginx.pid;
-events {{ worker_connections 16384; }}
-http {{
-    access_log off;
-    default_type application/octet-stream;
-    sendfile on;
-    tcp_nopush on;
-    tcp_nodelay on;
-    keepalive_timeout 300s;
-    keepalive_requests 100000000;
-    http2_max_concurrent_streams 128;
-    client_body_temp_path {p}/tmp/body;
-    proxy_temp_path {p}/tmp/proxy;
-    fastcgi_temp_path {p}/tmp/fastcgi;
-    uwsgi_temp_path {p}/tmp/uwsgi;
-    scgi_temp_path {p}/tmp/scgi;
-    server {{
-        listen 127.0.0.1:{port} ssl http2;
-        server_name localhost;
-        ssl_certificate {p}/cert.pem;
-        ssl_certificate_key {p}/key.pem;
-        ssl_protocols TLSv1.3;
-        root {p}/www;
-        disable_symlinks off;
-        location / {{ }}
-    }}
-}}
-"#,
-            p = p.display()
-        );
-        std::fs::write(p.join("nginx.conf"), conf)?;
-        let mut child = Command::new(bin)
-            .arg("-p")
-            .arg(p)
-            .arg("-e")
-            .arg(p.join("error.log"))
-            .arg("-c")
-            .arg(p.join("nginx.conf"))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .with_context(|| format!("cannot start {}", bin.display()))?;
-        let deadline = Instant::now() + Duration::from_secs(10);
-        loop {
-            if std::net::TcpStream::connect(addr).is_ok() {
-                break;
-            }
-            if let Ok(Some(st)) = child.try_wait() {
-                let log = std::fs::read_to_string(p.join("error.log")).unwrap_or_default();
-                bail!("nginx exited ({st}): {log}");
-            }
-            if Instant::now() > deadline {
-                let _ = child.kill();
-                bail!("nginx did not listen on {addr}");
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        Ok(Nginx {
-            addr,
-            cert_der: cert.cert.der().to_vec(),
-            child,
-            _prefix: prefix,
-        })
-    }
-
-    /// nginx's pids (master and workers).
-    pub fn pids(&self) -> Vec<u32> {
-        process_tree(self.child.id())
-    }
-}
-
-impl Drop for Nginx {
-    fn drop(&mut self) {
-        // SIGQUIT: graceful stop of master and workers.
-        signal(&self.child, Signal::QUIT);
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while Instant::now() < deadline {
-            if let Ok(Some(_)) = self.child.try_wait() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        signal(&self.child, Signal::TERM);
-        let _ = self.child.wait();
-    }
+/// nginx's pids (master and workers).
+fn nginx_pids(ng: &Nginx) -> Vec<u32> {
+    process_tree(ng.pid())
 }
 
 pub(crate) fn https_client_config(
@@ -248,7 +130,7 @@ pub(crate) async fn run_nginx(
     while let Some(r) = set.join_next().await {
         senders.push(r??);
     }
-    let pids = ng.pids();
+    let pids = nginx_pids(ng);
     let label = if h2 { "nginx h2" } else { "nginx h1" };
     if !scheds.is_empty() {
         let uri: Arc<str> = if h2 {

@@ -139,7 +139,7 @@ pub fn bench(args: &ServerArgs) -> Result<ServerReport> {
     let mut nginx = vec![];
     if args.nginx {
         let workers = args.nginx_workers.unwrap_or(cpus);
-        let ng = Nginx::start(&args.nginx_bin, &db, workers)?;
+        let ng = start_nginx(&args.nginx_bin, &db, workers)?;
         let modes: &[bool] = match args.http {
             HttpMode::H1 => &[false],
             HttpMode::H2 => &[true],

@@ -30,15 +30,7 @@ pub fn headless(width: u32, height: u32) -> Option<HeadlessRenderer> {
     }
 }
 
-/// Skips a test that cannot run here (no adapter, no Xvfb): prints `reason`
-/// and returns, so that the caller returns. Under `PLANET_CI=1` (set by
-/// `.ci/run`) or `PLANET_REQUIRE_ALL=1` it panics instead: in CI a skip is a
-/// failure.
-#[allow(dead_code)] // not every test file that shares this module skips
-pub fn skip_or_fail(reason: &str) {
-    let set = |v: &str| std::env::var(v).is_ok_and(|x| x == "1");
-    if set("PLANET_CI") || set("PLANET_REQUIRE_ALL") {
-        panic!("{reason} (PLANET_CI or PLANET_REQUIRE_ALL is set: a skip fails)");
-    }
-    eprintln!("NOTE: skipping, {reason}");
-}
+/// Skips a test that cannot run here; fails in CI
+/// ([`planet_testkit::skip_or_fail`]).
+#[allow(unused_imports)] // not every test file that shares this module skips
+pub use planet_testkit::skip_or_fail;
