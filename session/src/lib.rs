@@ -8,6 +8,8 @@
 //! - [`net`]: one QUIC [`net::Connection`] (control-stream handshake, one
 //!   stream per record) and the reconnecting [`net::Session`] driven from
 //!   synchronous code through non-blocking channels.
+//! - [`http`]: the same session over HTTP/2 byte ranges from any HTTPS
+//!   server ([`net::Session::spawn_http`]).
 //! - [`tls`]: client TLS configurations (certificate pinning, the system
 //!   roots, the process-wide crypto provider).
 //! - [`streaming`]: [`streaming::StreamingClient`], a `planet_client::Client`
@@ -15,6 +17,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod http;
 pub mod net;
 pub mod streaming;
 pub mod tls;

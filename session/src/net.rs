@@ -674,19 +674,19 @@ impl SessionConfig {
     }
 }
 
-enum Cmd {
+pub(crate) enum Cmd {
     Request { id: u64, offset: u64, size: u32 },
     Cancel { id: u64 },
     Close,
 }
 
 #[derive(Default)]
-struct Status {
-    connected: bool,
+pub(crate) struct Status {
+    pub(crate) connected: bool,
     zero_rtt: bool,
     zero_rtt_refused: bool,
-    welcome: Option<Welcome>,
-    last_error: Option<NetError>,
+    pub(crate) welcome: Option<Welcome>,
+    pub(crate) last_error: Option<NetError>,
     /// The current connection (for its path statistics).
     quic: Option<quinn::Connection>,
 }
@@ -711,10 +711,30 @@ impl Session {
     /// fail with a connection error. Either way, re-request after
     /// [`NetEvent::Connected`].
     pub fn spawn(runtime: &tokio::runtime::Handle, cfg: SessionConfig) -> SessionHandle {
+        SessionHandle::spawn_with(runtime, |cmd_rx, ev, status| {
+            run_session(cfg, cmd_rx, ev, status)
+        })
+    }
+}
+
+impl SessionHandle {
+    /// Spawns a session task made by `task` from the command receiver, the
+    /// event sender and the status (one per transport).
+    pub(crate) fn spawn_with<F>(
+        runtime: &tokio::runtime::Handle,
+        task: impl FnOnce(
+            mpsc::UnboundedReceiver<Cmd>,
+            crossbeam_channel::Sender<NetEvent>,
+            Arc<Mutex<Status>>,
+        ) -> F,
+    ) -> SessionHandle
+    where
+        F: std::future::Future<Output = ()> + Send + 'static,
+    {
         let (cmd, cmd_rx) = mpsc::unbounded_channel();
         let (ev_tx, events) = crossbeam_channel::unbounded();
         let status = Arc::new(Mutex::new(Status::default()));
-        let task = runtime.spawn(run_session(cfg, cmd_rx, ev_tx, Arc::clone(&status)));
+        let task = runtime.spawn(task(cmd_rx, ev_tx, Arc::clone(&status)));
         SessionHandle {
             cmd,
             events,
@@ -801,13 +821,13 @@ impl Drop for SessionHandle {
     }
 }
 
-fn set_status(status: &Mutex<Status>, f: impl FnOnce(&mut Status)) {
+pub(crate) fn set_status(status: &Mutex<Status>, f: impl FnOnce(&mut Status)) {
     if let Ok(mut s) = status.lock() {
         f(&mut s);
     }
 }
 
-fn jittered(d: Duration) -> Duration {
+pub(crate) fn jittered(d: Duration) -> Duration {
     // "Equal jitter": between half and all of the nominal delay.
     d.mul_f64(0.5 + 0.5 * rand::random::<f64>())
 }

@@ -20,6 +20,7 @@
 //! of the database), the partial tree is discarded and a new [`Client`] is
 //! built from the new header.
 
+use crate::http::HttpSessionConfig;
 use crate::net::{NetError, NetEvent, Session, SessionConfig, SessionHandle};
 use planet_client::{Camera, Client, ClientConfig, ClientError, FrameOutput, TransportError};
 use planet_core::format::{FormatError, Header};
@@ -96,6 +97,29 @@ impl StreamingClient {
         timeout: Duration,
     ) -> Result<StreamingClient, StreamingError> {
         let handle = Session::spawn(runtime, session);
+        StreamingClient::with_session(runtime, handle, client_cfg, timeout)
+    }
+
+    /// [`StreamingClient::connect`] over HTTP/2 byte ranges from any HTTPS
+    /// server ([`crate::http`]).
+    pub fn connect_http(
+        runtime: &tokio::runtime::Handle,
+        session: HttpSessionConfig,
+        client_cfg: ClientConfig,
+        timeout: Duration,
+    ) -> Result<StreamingClient, StreamingError> {
+        let handle = Session::spawn_http(runtime, session);
+        StreamingClient::with_session(runtime, handle, client_cfg, timeout)
+    }
+
+    /// Waits up to `timeout` for the welcome of a session already spawned
+    /// on `runtime` (any transport) and builds the client.
+    pub fn with_session(
+        runtime: &tokio::runtime::Handle,
+        handle: SessionHandle,
+        client_cfg: ClientConfig,
+        timeout: Duration,
+    ) -> Result<StreamingClient, StreamingError> {
         let deadline = Instant::now() + timeout;
         let mut counters = NetCounters::default();
         let welcome = loop {

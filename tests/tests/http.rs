@@ -1,0 +1,170 @@
+//! End-to-end over the second transport (ISSUE #19): the streaming client
+//! fetches the database as HTTP/2 byte ranges from a real nginx over TLS,
+//! with no planet-server.
+
+mod common;
+
+use common::*;
+use planet_client::tree::Samples;
+use planet_session::http::HttpSessionConfig;
+use planet_session::streaming::StreamingClient;
+use planet_testkit::harness::{build_procedural_db, runtime};
+use planet_testkit::nginx::{Nginx, NGINX_BIN};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// nginx serving `file`, or `None` (skipped, failing in CI) without nginx.
+fn nginx(file: &Path) -> Option<Nginx> {
+    if !Path::new(NGINX_BIN).exists() {
+        planet_testkit::skip_or_fail(&format!("{NGINX_BIN} not installed"));
+        return None;
+    }
+    Some(Nginx::start(Path::new(NGINX_BIN), file, 1).expect("nginx"))
+}
+
+fn connect_http(rt: &tokio::runtime::Runtime, ng: &Nginx) -> StreamingClient {
+    let tls = planet_session::tls::trusting(&ng.cert_der).expect("tls");
+    let cfg = HttpSessionConfig::from_url(&ng.url(), tls).expect("url");
+    StreamingClient::connect_http(rt.handle(), cfg, client_cfg(), Duration::from_secs(10))
+        .expect("welcome over HTTP/2")
+}
+
+#[test]
+fn static_camera_converges_to_exact_samples_over_http2() {
+    let rt = runtime(2).expect("runtime");
+    let Some(ng) = nginx(small_db()) else { return };
+    let mut sc = connect_http(&rt, &ng);
+    let camera = static_camera();
+    let out = converge(&mut sc, &camera, Duration::from_secs(30), |_, _| {});
+    assert_exact(&sc, &out);
+    assert!(sc.bytes_received() > 0);
+    sc.close();
+}
+
+#[test]
+fn a_replaced_file_restarts_the_session_with_the_new_header() {
+    let rt = runtime(2).expect("runtime");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let first = dir.path().join("first.planetdb");
+    let second = dir.path().join("second.planetdb");
+    build_procedural_db(&first, 2, 1).expect("first");
+    build_procedural_db(&second, 2, 2).expect("second");
+    let Some(ng) = nginx(&first) else { return };
+    let mut sc = connect_http(&rt, &ng);
+    let before = sc.header().clone();
+    let camera = static_camera();
+    let _ = converge(&mut sc, &camera, Duration::from_secs(30), |_, _| {});
+    let connects = sc.counters().connects;
+    // Publish the second file under the same URL, as a deploy would
+    // (rename over the served name).
+    let tmp = ng.served_path().with_extension("new");
+    std::os::unix::fs::symlink(&second, &tmp).expect("link");
+    std::fs::rename(&tmp, ng.served_path()).expect("rename");
+    // A new view needs new records: their requests carry the old ETag and
+    // get 412, the session reconnects and welcomes the new header.
+    let moved = cam(27.95, 86.93, 60_000.0, 0.0, -25.0);
+    let start = Instant::now();
+    while sc.header() == &before {
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "still on the old header: counters {:?}",
+            sc.counters()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+        let _ = sc.frame(&moved, 0.01);
+    }
+    assert!(sc.counters().connects > connects);
+    let out = converge(&mut sc, &moved, Duration::from_secs(30), |_, _| {});
+    assert!(!out.draw.is_empty());
+    sc.client.tree().validate().expect("tree invariants");
+    sc.close();
+}
+
+#[test]
+fn a_corrupt_record_is_detected_and_never_drawn() {
+    let rt = runtime(2).expect("runtime");
+    let Some(ng) = nginx(small_db()) else { return };
+    // The record of the parent of the finest block the static view draws:
+    // a block's record holds its LOD 0 and its children's LOD 1.
+    let mut sc = connect_http(&rt, &ng);
+    let camera = static_camera();
+    let out = converge(&mut sc, &camera, Duration::from_secs(30), |_, _| {});
+    let et = sc.client.tree().elevation();
+    let victim = out
+        .draw
+        .iter()
+        .map(|d| d.block)
+        .filter(|b| b.level >= 2)
+        .max_by_key(|b| b.level)
+        .and_then(|b| b.parent())
+        .expect("a block drawn two levels below the roots");
+    let parent = victim.parent().expect("parent");
+    let refs = et
+        .get(&parent)
+        .and_then(|n| n.child_refs.clone())
+        .expect("parent's child references");
+    let i = parent
+        .children()
+        .iter()
+        .position(|c| *c == victim)
+        .expect("a child of its parent");
+    let r = refs[i];
+    sc.close();
+    drop(ng);
+
+    // The same file with one byte of that record flipped, behind nginx:
+    // it serves the bytes as they are, so only the client's checks stand
+    // between them and the screen.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bad = dir.path().join("corrupt.planetdb");
+    let mut bytes = std::fs::read(small_db()).expect("read");
+    let at = (r.offset + u64::from(r.size) / 2) as usize;
+    bytes[at] ^= 0x5a;
+    std::fs::write(&bad, &bytes).expect("write");
+    let Some(ng) = nginx(&bad) else { return };
+    let mut sc = connect_http(&rt, &ng);
+    let truth = truth();
+    let side = sc.client.tree().elevation().width + 1;
+    let start = Instant::now();
+    let mut frames = 0;
+    while start.elapsed() < Duration::from_secs(4) {
+        std::thread::sleep(Duration::from_millis(10));
+        let out = sc.frame(&camera, 0.01);
+        frames += 1;
+        let et = sc.client.tree().elevation();
+        for d in &out.draw {
+            assert!(
+                !(d.block == victim && d.lod == 0) && d.block.parent() != Some(victim),
+                "{:?} at LOD {} drawn from the corrupt record of {victim:?}",
+                d.block,
+                d.lod
+            );
+            let Some(Samples::Elevation(grid)) = et.get(&d.block).and_then(|n| n.samples.as_ref())
+            else {
+                continue;
+            };
+            let t = truth.get(&d.block).expect("block in database");
+            for j in (0..side).step_by(2 - usize::from(d.lod == 0)) {
+                for k in (0..side).step_by(2 - usize::from(d.lod == 0)) {
+                    assert_eq!(
+                        grid[j * side + k],
+                        t[j * side + k],
+                        "{:?} at LOD {}",
+                        d.block,
+                        d.lod
+                    );
+                }
+            }
+        }
+    }
+    let err = sc.client.last_error().unwrap_or_default().to_string();
+    eprintln!(
+        "{frames} frames; last rejection: {err}; counters {:?}",
+        sc.counters()
+    );
+    assert!(
+        err.contains("checksum"),
+        "the corrupt record was not rejected: {err:?}"
+    );
+    sc.close();
+}
