@@ -1,6 +1,7 @@
 //! `planet-linksim`: an in-process UDP relay that simulates a network link
 //! between a real (QUIC) client and a real server, for tests and benchmarks
-//! on machines without netem.
+//! on machines without netem; and the same shaping for kernel TCP through
+//! TUN devices and a network namespace ([`TcpLink`]).
 //!
 //! ```no_run
 //! # async fn demo(server: std::net::SocketAddr) -> std::io::Result<()> {
@@ -64,9 +65,11 @@
 mod config;
 mod relay;
 mod shaper;
+pub mod tun;
 
 pub use config::{
     LinkConfig, ParseLinkConfigError, DEFAULT_QUEUE_LIMIT, DEFAULT_REORDER_DELAY,
     MIN_DEFAULT_QUEUE_LIMIT, PER_PACKET_OVERHEAD,
 };
 pub use relay::{Link, LinkStats, MAX_IN_FLIGHT_BYTES, SESSION_IDLE_TIMEOUT};
+pub use tun::{TcpLink, TcpLinkStats};

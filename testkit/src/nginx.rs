@@ -65,6 +65,43 @@ impl Nginx {
         name: &str,
         workers: usize,
     ) -> Result<Nginx, NginxError> {
+        let port = TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+        Nginx::launch(
+            bin,
+            file,
+            name,
+            workers,
+            ([127, 0, 0, 1], port).into(),
+            None,
+        )
+    }
+
+    /// [`Nginx::start`] inside the network namespace `ns` (e.g. a
+    /// `planet_linksim::TcpLink`'s), listening on `ip:8443`; its
+    /// certificate also names `ip`, and [`Nginx::url`] uses it.
+    pub fn start_in_namespace(
+        bin: &Path,
+        file: &Path,
+        workers: usize,
+        ns: &str,
+        ip: std::net::Ipv4Addr,
+    ) -> Result<Nginx, NginxError> {
+        let name = file
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("db")
+            .to_string();
+        Nginx::launch(bin, file, &name, workers, (ip, 8443).into(), Some(ns))
+    }
+
+    fn launch(
+        bin: &Path,
+        file: &Path,
+        name: &str,
+        workers: usize,
+        addr: SocketAddr,
+        ns: Option<&str>,
+    ) -> Result<Nginx, NginxError> {
         let prefix = tempfile::Builder::new().prefix("planet-nginx").tempdir()?;
         let p = prefix.path();
         let www = p.join("www");
@@ -72,12 +109,13 @@ impl Nginx {
         std::fs::create_dir_all(p.join("tmp"))?;
         let file = std::fs::canonicalize(file)?;
         std::os::unix::fs::symlink(&file, www.join(name))?;
-        let cert =
-            rcgen::generate_simple_self_signed(vec!["localhost".into(), "127.0.0.1".into()])?;
+        let cert = rcgen::generate_simple_self_signed(vec![
+            "localhost".into(),
+            "127.0.0.1".into(),
+            addr.ip().to_string(),
+        ])?;
         std::fs::write(p.join("cert.pem"), cert.cert.pem())?;
         std::fs::write(p.join("key.pem"), cert.signing_key.serialize_pem())?;
-        let port = TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
-        let addr: SocketAddr = ([127, 0, 0, 1], port).into();
         // Running as root, workers would switch to `nobody`; keep them as the
         // current user so they can read the file wherever it is.
         let user = if rustix::process::geteuid().is_root() {
@@ -110,7 +148,7 @@ http {{
     uwsgi_temp_path {p}/tmp/uwsgi;
     scgi_temp_path {p}/tmp/scgi;
     server {{
-        listen 127.0.0.1:{port} ssl http2;
+        listen {addr} ssl http2;
         server_name localhost;
         ssl_certificate {p}/cert.pem;
         ssl_certificate_key {p}/key.pem;
@@ -125,7 +163,15 @@ http {{
             p = p.display()
         );
         std::fs::write(p.join("nginx.conf"), conf)?;
-        let mut child = Command::new(bin)
+        let mut cmd = match ns {
+            Some(ns) => {
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", ns]).arg(bin);
+                c
+            }
+            None => Command::new(bin),
+        };
+        let mut child = cmd
             .arg("-p")
             .arg(p)
             .arg("-e")
@@ -138,7 +184,7 @@ http {{
             .spawn()?;
         let deadline = Instant::now() + Duration::from_secs(10);
         loop {
-            if std::net::TcpStream::connect(addr).is_ok() {
+            if std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(1)).is_ok() {
                 break;
             }
             if let Ok(Some(status)) = child.try_wait() {
@@ -162,9 +208,14 @@ http {{
         })
     }
 
-    /// `https://localhost:PORT/NAME`.
+    /// `https://localhost:PORT/NAME` on loopback, `https://IP:8443/NAME` in
+    /// a namespace.
     pub fn url(&self) -> String {
-        format!("https://localhost:{}/{}", self.addr.port(), self.name)
+        if self.addr.ip().is_loopback() {
+            format!("https://localhost:{}/{}", self.addr.port(), self.name)
+        } else {
+            format!("https://{}/{}", self.addr, self.name)
+        }
     }
 
     /// The path nginx serves the file from (a symbolic link to it): replace

@@ -6,6 +6,7 @@ mod common;
 
 use common::*;
 use planet_client::tree::Samples;
+use planet_linksim::{LinkConfig, TcpLink};
 use planet_session::http::HttpSessionConfig;
 use planet_session::streaming::StreamingClient;
 use planet_testkit::harness::{build_procedural_db, runtime};
@@ -167,4 +168,56 @@ fn a_corrupt_record_is_detected_and_never_drawn() {
         "the corrupt record was not rejected: {err:?}"
     );
     sc.close();
+}
+
+#[test]
+fn converges_from_nginx_through_a_lossy_shaped_tcp_link() {
+    // Kernel TCP through the TUN link: nginx in its own network namespace,
+    // every IP packet between it and the client through the same shaper
+    // as the QUIC relay (10 Mbit/s, 20 ms each way, 2 % loss).
+    let rt = runtime(2).expect("runtime");
+    if !Path::new(NGINX_BIN).exists() {
+        planet_testkit::skip_or_fail(&format!("{NGINX_BIN} not installed"));
+        return;
+    }
+    let cfg: LinkConfig = "10mbit,20ms,2%loss".parse().expect("link");
+    let link = match rt.block_on(TcpLink::start(cfg.clone().with_seed(1), cfg.with_seed(2))) {
+        Ok(l) => l,
+        Err(e) => {
+            planet_testkit::skip_or_fail(&format!(
+                "no TUN link (needs root, /dev/net/tun, ip netns): {e}"
+            ));
+            return;
+        }
+    };
+    let ng = Nginx::start_in_namespace(
+        Path::new(NGINX_BIN),
+        small_db(),
+        1,
+        link.namespace(),
+        link.server_ip(),
+    )
+    .expect("nginx in the namespace");
+    let start = Instant::now();
+    let mut sc = connect_http(&rt, &ng);
+    let camera = static_camera();
+    let out = converge(&mut sc, &camera, Duration::from_secs(60), |_, _| {});
+    assert_exact(&sc, &out);
+    let stats = link.stats();
+    eprintln!(
+        "converged in {:?} through the TCP link: {stats:?}, counters {:?}",
+        start.elapsed(),
+        sc.counters()
+    );
+    assert!(stats.packets_down > 0 && stats.packets_up > 0);
+    assert!(
+        stats.bytes_down >= sc.bytes_received(),
+        "the records crossed the link"
+    );
+    assert!(
+        stats.dropped_loss > 0,
+        "2 % loss dropped nothing: {stats:?}"
+    );
+    sc.close();
+    drop(ng);
 }

@@ -1,0 +1,340 @@
+//! The link for kernel TCP (ISSUE #19): a network namespace joined to this
+//! one by two TUN devices, whose IP packets this process moves from one to
+//! the other through the same [`Shaper`] as the UDP relay, so that TCP's
+//! own loss recovery, congestion control and head-of-line blocking are what
+//! a benchmark measures.
+//!
+//! ```text
+//!   this namespace                         namespace `planet-…` (servers)
+//!   client ── 10.200.a.b+1 ─ tun "plc…" ─┐   ┌─ tun "pls…" ─ 10.200.a.b+2 ── nginx
+//!                                        └─ this process: up/down shapers ┘
+//! ```
+//!
+//! A server is started inside the namespace ([`TcpLink::command`], i.e.
+//! `ip netns exec NS …`) listening on [`TcpLink::server_ip`]; clients here
+//! connect to that address and their packets cross the link. Only addresses
+//! inside the namespace this link created, and the point-to-point pair, are
+//! used. Needs root (or `CAP_NET_ADMIN` and `CAP_SYS_ADMIN`), `/dev/net/tun`
+//! and iproute2's `ip`. Dropping the link deletes the namespace and both
+//! devices.
+//!
+//! Bytes on the wire: the shaper adds [`crate::config::PER_PACKET_OVERHEAD`]
+//! (IPv4 + UDP headers) to a UDP payload; here the packets are whole IP
+//! packets, so that much is subtracted first and every packet counts its
+//! real size, headers included, against the bandwidth.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::io;
+use std::net::Ipv4Addr;
+use std::process::Command;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use tokio::sync::mpsc;
+use tokio::task::AbortHandle;
+use tokio_tun::Tun;
+
+use crate::config::{LinkConfig, PER_PACKET_OVERHEAD};
+use crate::shaper::{Shaper, Verdict};
+
+/// Largest IP packet read from a TUN device (its MTU is 1 500).
+const MAX_PACKET: usize = 65_536;
+
+/// Links made by this process (for unique names and subnets).
+static NEXT: AtomicU64 = AtomicU64::new(0);
+
+/// Counters of a [`TcpLink`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TcpLinkStats {
+    /// IP packets that entered the link towards the servers.
+    pub packets_up: u64,
+    /// IP packets that entered the link towards the clients.
+    pub packets_down: u64,
+    /// Bytes (whole IP packets) delivered towards the clients.
+    pub bytes_down: u64,
+    /// Packets lost at random (both directions).
+    pub dropped_loss: u64,
+    /// Packets dropped at a full bottleneck queue (both directions).
+    pub dropped_queue: u64,
+}
+
+#[derive(Default)]
+struct Counters {
+    packets_up: AtomicU64,
+    packets_down: AtomicU64,
+    bytes_down: AtomicU64,
+    dropped_loss: AtomicU64,
+    dropped_queue: AtomicU64,
+}
+
+/// A shaped link between this namespace and a new one ([module docs](self)).
+pub struct TcpLink {
+    ns: String,
+    client_ip: Ipv4Addr,
+    server_ip: Ipv4Addr,
+    counters: Arc<Counters>,
+    tasks: Vec<AbortHandle>,
+}
+
+fn ip(args: &[&str]) -> io::Result<()> {
+    let out = Command::new("ip").args(args).output()?;
+    if out.status.success() {
+        Ok(())
+    } else {
+        Err(io::Error::other(format!(
+            "ip {}: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr).trim()
+        )))
+    }
+}
+
+impl TcpLink {
+    /// Creates the namespace and the two devices and starts moving packets
+    /// through `up` (towards the namespace) and `down`. Must be called
+    /// inside a tokio runtime.
+    pub async fn start(up: LinkConfig, down: LinkConfig) -> io::Result<TcpLink> {
+        let k = (u64::from(std::process::id()) << 8) + NEXT.fetch_add(1, Ordering::Relaxed);
+        // 10.200.0.0/16 in /30s: 16 384 links.
+        let slot = (k % 16_384) as u32;
+        let base = u32::from(Ipv4Addr::new(10, 200, 0, 0)) + slot * 4;
+        let client_ip = Ipv4Addr::from(base + 1);
+        let server_ip = Ipv4Addr::from(base + 2);
+        let ns = format!("planet-{slot}-{}", std::process::id());
+        ip(&["netns", "add", &ns])?;
+        let mut link = TcpLink {
+            ns,
+            client_ip,
+            server_ip,
+            counters: Arc::new(Counters::default()),
+            tasks: Vec::new(),
+        };
+        // From here on, Drop deletes the namespace on any error.
+        ip(&["netns", "exec", &link.ns, "ip", "link", "set", "lo", "up"])?;
+        let near = Tun::builder()
+            .name(&format!("plc{slot}"))
+            .address(client_ip)
+            .destination(server_ip)
+            .netmask(Ipv4Addr::new(255, 255, 255, 255))
+            .up()
+            .build()
+            .map_err(io::Error::other)?
+            .pop()
+            .ok_or_else(|| io::Error::other("no TUN queue"))?;
+        let far = far_tun(&link.ns, slot, server_ip, client_ip)?;
+        let (near, far) = (Arc::new(near), Arc::new(far));
+        let (up_tx, up_rx) = mpsc::unbounded_channel();
+        let (down_tx, down_rx) = mpsc::unbounded_channel();
+        let up_shaper = Arc::new(Mutex::new(Shaper::new(up, 0x7570)));
+        let down_shaper = Arc::new(Mutex::new(Shaper::new(down, 0x646f)));
+        let c = &link.counters;
+        link.tasks = vec![
+            tokio::spawn(read_loop(
+                Arc::clone(&near),
+                up_shaper,
+                up_tx,
+                Arc::clone(c),
+                true,
+            ))
+            .abort_handle(),
+            tokio::spawn(read_loop(
+                Arc::clone(&far),
+                down_shaper,
+                down_tx,
+                Arc::clone(c),
+                false,
+            ))
+            .abort_handle(),
+            tokio::spawn(deliver_loop(far, up_rx, Arc::clone(c), true)).abort_handle(),
+            tokio::spawn(deliver_loop(near, down_rx, Arc::clone(c), false)).abort_handle(),
+        ];
+        Ok(link)
+    }
+
+    /// The namespace's name (`ip netns exec NAME …`).
+    pub fn namespace(&self) -> &str {
+        &self.ns
+    }
+
+    /// The servers' address, inside the namespace.
+    pub fn server_ip(&self) -> Ipv4Addr {
+        self.server_ip
+    }
+
+    /// This side's address of the point-to-point pair.
+    pub fn client_ip(&self) -> Ipv4Addr {
+        self.client_ip
+    }
+
+    /// A command that runs `program` inside the namespace.
+    pub fn command(&self, program: impl AsRef<std::ffi::OsStr>) -> Command {
+        let mut c = Command::new("ip");
+        c.args(["netns", "exec", &self.ns]).arg(program);
+        c
+    }
+
+    /// The counters so far.
+    pub fn stats(&self) -> TcpLinkStats {
+        let c = &self.counters;
+        TcpLinkStats {
+            packets_up: c.packets_up.load(Ordering::Relaxed),
+            packets_down: c.packets_down.load(Ordering::Relaxed),
+            bytes_down: c.bytes_down.load(Ordering::Relaxed),
+            dropped_loss: c.dropped_loss.load(Ordering::Relaxed),
+            dropped_queue: c.dropped_queue.load(Ordering::Relaxed),
+        }
+    }
+}
+
+impl Drop for TcpLink {
+    fn drop(&mut self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+        if let Err(e) = ip(&["netns", "del", &self.ns]) {
+            tracing::warn!(error = %e, ns = %self.ns, "linksim: cannot delete the namespace");
+        }
+    }
+}
+
+/// The namespace's TUN device, created by a thread that joined the
+/// namespace (a device belongs to the namespace it was created in; the
+/// thread's fd keeps working after the thread is gone).
+fn far_tun(ns: &str, slot: u32, addr: Ipv4Addr, peer: Ipv4Addr) -> io::Result<Tun> {
+    let path = format!("/run/netns/{ns}");
+    let handle = tokio::runtime::Handle::current();
+    let name = format!("pls{slot}");
+    std::thread::scope(|s| {
+        s.spawn(|| {
+            let f = std::fs::File::open(&path)?;
+            rustix::thread::move_into_link_name_space(
+                std::os::fd::AsFd::as_fd(&f),
+                Some(rustix::thread::LinkNameSpaceType::Network),
+            )?;
+            let _rt = handle.enter();
+            Tun::builder()
+                .name(&name)
+                .address(addr)
+                .destination(peer)
+                .netmask(Ipv4Addr::new(255, 255, 255, 255))
+                .up()
+                .build()
+                .map_err(io::Error::other)?
+                .pop()
+                .ok_or_else(|| io::Error::other("no TUN queue"))
+        })
+        .join()
+        .map_err(|_| io::Error::other("namespace thread panicked"))?
+    })
+}
+
+/// A packet and when it leaves the link.
+struct Scheduled {
+    at: Instant,
+    seq: u64,
+    packet: Vec<u8>,
+}
+
+impl PartialEq for Scheduled {
+    fn eq(&self, o: &Self) -> bool {
+        (self.at, self.seq) == (o.at, o.seq)
+    }
+}
+impl Eq for Scheduled {}
+impl PartialOrd for Scheduled {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for Scheduled {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        (self.at, self.seq).cmp(&(o.at, o.seq))
+    }
+}
+
+async fn read_loop(
+    from: Arc<Tun>,
+    shaper: Arc<Mutex<Shaper>>,
+    tx: mpsc::UnboundedSender<Scheduled>,
+    c: Arc<Counters>,
+    up: bool,
+) {
+    let mut buf = vec![0u8; MAX_PACKET];
+    let mut seq = 0u64;
+    loop {
+        let n = match from.recv(&mut buf).await {
+            Ok(n) => n,
+            Err(e) => {
+                tracing::debug!(error = %e, "linksim: TUN read failed");
+                return;
+            }
+        };
+        if up {
+            c.packets_up.fetch_add(1, Ordering::Relaxed);
+        } else {
+            c.packets_down.fetch_add(1, Ordering::Relaxed);
+        }
+        let verdict = {
+            let mut s = shaper.lock().unwrap_or_else(|e| e.into_inner());
+            s.decide(Instant::now(), n.saturating_sub(PER_PACKET_OVERHEAD), false)
+        };
+        match verdict {
+            Verdict::Deliver(at) => {
+                seq += 1;
+                let packet = buf[..n].to_vec();
+                if tx.send(Scheduled { at, seq, packet }).is_err() {
+                    return;
+                }
+            }
+            Verdict::DropLoss => {
+                c.dropped_loss.fetch_add(1, Ordering::Relaxed);
+            }
+            Verdict::DropQueue | Verdict::DropBlackhole => {
+                c.dropped_queue.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+}
+
+async fn deliver_loop(
+    to: Arc<Tun>,
+    mut rx: mpsc::UnboundedReceiver<Scheduled>,
+    c: Arc<Counters>,
+    up: bool,
+) {
+    let mut heap: BinaryHeap<Reverse<Scheduled>> = BinaryHeap::new();
+    loop {
+        let now = Instant::now();
+        while heap.peek().is_some_and(|Reverse(p)| p.at <= now) {
+            if let Some(Reverse(p)) = heap.pop() {
+                if !up {
+                    c.bytes_down
+                        .fetch_add(p.packet.len() as u64, Ordering::Relaxed);
+                }
+                if let Err(e) = to.send(&p.packet).await {
+                    tracing::debug!(error = %e, "linksim: TUN write failed");
+                }
+            }
+        }
+        let next = heap.peek().map(|Reverse(p)| p.at);
+        tokio::select! {
+            msg = rx.recv() => match msg {
+                Some(p) => {
+                    heap.push(Reverse(p));
+                    while let Ok(p) = rx.try_recv() {
+                        heap.push(Reverse(p));
+                    }
+                }
+                None => return,
+            },
+            _ = async {
+                match next {
+                    Some(at) => tokio::time::sleep_until(at.into()).await,
+                    None => std::future::pending().await,
+                }
+            } => {}
+        }
+    }
+}
