@@ -8,6 +8,13 @@
 //! `--out`: a CSV per run, one PNG per link with every policy overlaid
 //! (max and mean SSE and true error against time, max SSE against bytes),
 //! `summary.md` and `summary.json` (one object per run).
+//!
+//! `--transport` (repeatable) adds the transport as a dimension: `quic`
+//! (planet-server in process, through the UDP relay) and `http2` (the same
+//! file served by nginx over HTTPS byte ranges, through the TCP link: kernel
+//! TCP in a network namespace, shaped packet by packet by the same shaper
+//! and seeds as the UDP relay; `planet_linksim::TcpLink`). Only the
+//! transport differs: same client, policies, database, trajectory and link.
 
 use crate::plot;
 use crate::thread_cpu;
@@ -16,8 +23,9 @@ use clap::Args;
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::trajectory::Trajectory;
 use planet_client::{Client, ClientConfig, Policy};
-use planet_linksim::{Link, LinkConfig};
+use planet_linksim::{Link, LinkConfig, TcpLink};
 use planet_preprocess::db::Sampler;
+use planet_session::http::HttpSessionConfig;
 use planet_session::net::{Connection, SessionConfig};
 use planet_session::streaming::StreamingClient;
 use planet_testkit::harness::{client_surface_elevation, probe_points, runtime, LocalServer};
@@ -112,6 +120,33 @@ pub struct FlightArgs {
     /// server's default, `congestion` in docs/DEPLOY.md's server.toml).
     #[arg(long)]
     pub congestion: Option<String>,
+    /// Transports to fly, each with every link and policy: `quic`
+    /// (planet-server) and `http2` (nginx byte ranges through the TCP link;
+    /// needs root, /dev/net/tun and iproute2).
+    #[arg(long = "transport", value_enum, default_value = "quic")]
+    pub transports: Vec<Transport>,
+    /// nginx binary for `--transport http2`.
+    #[arg(long, default_value = planet_testkit::nginx::NGINX_BIN)]
+    pub nginx_bin: PathBuf,
+}
+
+/// How the client reaches the database.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Transport {
+    /// planet-server over QUIC.
+    Quic,
+    /// nginx over HTTP/2 (TLS over kernel TCP) byte ranges.
+    Http2,
+}
+
+impl std::fmt::Display for Transport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Transport::Quic => "quic",
+            Transport::Http2 => "http2",
+        })
+    }
 }
 
 /// The thesis's triangle budget on its high-end client (§4.6, 2 M).
@@ -147,6 +182,7 @@ pub struct Row {
 #[derive(Debug, Clone)]
 pub struct Summary {
     pub label: String,
+    pub transport: Transport,
     /// The database's file stem.
     pub db: String,
     pub policy: Policy,
@@ -216,6 +252,7 @@ fn link_name(spec: &str) -> String {
 struct JsonSummary<'a> {
     db: &'a str,
     link: &'a str,
+    transport: Transport,
     policy: &'a str,
     trajectory: &'a str,
     max_sse_px: f64,
@@ -291,15 +328,22 @@ pub fn run(args: FlightArgs) -> Result<()> {
             );
             Some(n)
         };
+        let transports = a.transports.len() > 1;
         for (k, spec) in a.links.iter().enumerate() {
-            for &policy in &a.policies {
-                let (s, rows) = run_link(&a, &traj, spec, policy, needed)?;
+            for (&transport, &policy) in a
+                .transports
+                .iter()
+                .flat_map(|t| a.policies.iter().map(move |p| (t, p)))
+            {
+                let (s, rows) = run_link(&a, &traj, spec, transport, policy, needed)?;
                 print_summary(std::slice::from_ref(&s));
-                let name = if several {
-                    format!("{policy} @ {}", s.db)
-                } else {
-                    policy.name().to_string()
-                };
+                let mut name = policy.name().to_string();
+                if transports {
+                    name = format!("{name} / {transport}");
+                }
+                if several {
+                    name = format!("{name} @ {}", s.db);
+                }
                 per_link[k].push((name, rows));
                 needed_per_db.push(needed);
                 summaries.push(s);
@@ -324,6 +368,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
         json.push(JsonSummary {
             db: &s.db,
             link: &s.label,
+            transport: s.transport,
             policy: s.policy.name(),
             trajectory: &a.trajectory,
             max_sse_px: a.max_sse,
@@ -425,29 +470,72 @@ fn needed_bytes(a: &FlightArgs, traj: &Trajectory) -> Result<u64> {
     Ok(total)
 }
 
+/// The server side of one run: planet-server through the UDP relay, or
+/// nginx through the TCP link.
+enum Route {
+    Quic {
+        server: LocalServer,
+        link: Link,
+    },
+    Http2 {
+        // Dropped before the link (its namespace).
+        nginx: planet_testkit::nginx::Nginx,
+        link: TcpLink,
+    },
+}
+
+impl Route {
+    fn bytes_down(&self) -> u64 {
+        match self {
+            Route::Quic { link, .. } => link.stats().bytes_down,
+            Route::Http2 { link, .. } => link.stats().bytes_down,
+        }
+    }
+}
+
 fn run_link(
     a: &FlightArgs,
     traj: &Trajectory,
     spec: &str,
+    transport: Transport,
     policy: Policy,
     needed: Option<u64>,
 ) -> Result<(Summary, Vec<Row>)> {
     let cfg: LinkConfig = spec.parse().with_context(|| format!("link {spec:?}"))?;
     let label = a.label.clone().unwrap_or_else(|| spec.to_string());
-    eprintln!("== {label} / {policy}: {}", a.db.display());
+    eprintln!("== {label} / {transport} / {policy}: {}", a.db.display());
     let rt = runtime(2)?;
-    let congestion = a
-        .congestion
-        .as_deref()
-        .map(str::parse::<planet_server::Congestion>)
-        .transpose()?;
-    let server = LocalServer::start_with(rt.handle(), &a.db, congestion)?;
     let bandwidth = cfg.bandwidth_bps;
-    let link = rt.block_on(Link::start(
-        server.addr(),
-        cfg.clone().with_seed(1),
-        cfg.with_seed(2),
-    ))?;
+    let path = match transport {
+        Transport::Quic => {
+            let congestion = a
+                .congestion
+                .as_deref()
+                .map(str::parse::<planet_server::Congestion>)
+                .transpose()?;
+            let server = LocalServer::start_with(rt.handle(), &a.db, congestion)?;
+            let link = rt.block_on(Link::start(
+                server.addr(),
+                cfg.clone().with_seed(1),
+                cfg.with_seed(2),
+            ))?;
+            Route::Quic { server, link }
+        }
+        Transport::Http2 => {
+            let link = rt
+                .block_on(TcpLink::start(cfg.clone().with_seed(1), cfg.with_seed(2)))
+                .context("the TCP link (needs root, /dev/net/tun and iproute2's ip)")?;
+            let nginx = planet_testkit::nginx::Nginx::start_in_namespace(
+                &a.nginx_bin,
+                &a.db,
+                1,
+                link.namespace(),
+                link.server_ip(),
+            )
+            .context("nginx in the link's namespace")?;
+            Route::Http2 { nginx, link }
+        }
+    };
     let client_cfg = client_config(a, policy);
     let sampler = Sampler::open(&a.db)?;
     let datum = sampler.header().datum;
@@ -472,17 +560,45 @@ fn run_link(
             })
             .collect();
     drop(cache);
-    let session = server.session_config(link.local_addr())?;
-    let warm_up_bytes = if a.warm {
-        rt.block_on(warm_up(&session))?;
-        link.stats().bytes_down
-    } else {
-        0
+    let (mut sc, connect_ms, t_connect, warm_up_bytes) = match &path {
+        Route::Quic { server, link } => {
+            let session = server.session_config(link.local_addr())?;
+            let warm_up_bytes = if a.warm {
+                rt.block_on(warm_up(&session))?;
+                link.stats().bytes_down
+            } else {
+                0
+            };
+            let t_connect = Instant::now();
+            let sc = StreamingClient::connect(
+                rt.handle(),
+                session,
+                client_cfg,
+                Duration::from_secs(20),
+            )?;
+            (
+                sc,
+                t_connect.elapsed().as_secs_f64() * 1e3,
+                t_connect,
+                warm_up_bytes,
+            )
+        }
+        Route::Http2 { nginx, .. } => {
+            if a.warm {
+                bail!("--warm applies to QUIC only (0-RTT resumption)");
+            }
+            let tls = planet_session::tls::trusting(&nginx.cert_der)?;
+            let session = HttpSessionConfig::from_url(&nginx.url(), tls)?;
+            let t_connect = Instant::now();
+            let sc = StreamingClient::connect_http(
+                rt.handle(),
+                session,
+                client_cfg,
+                Duration::from_secs(20),
+            )?;
+            (sc, t_connect.elapsed().as_secs_f64() * 1e3, t_connect, 0)
+        }
     };
-    let t_connect = Instant::now();
-    let mut sc =
-        StreamingClient::connect(rt.handle(), session, client_cfg, Duration::from_secs(20))?;
-    let connect_ms = t_connect.elapsed().as_secs_f64() * 1e3;
 
     let zero_rtt = sc.session().used_zero_rtt();
     eprintln!(
@@ -577,20 +693,24 @@ fn run_link(
     }
     let counters = sc.counters();
     let totals = sc.client.totals();
-    let link_stats = link.stats();
+    let link_bytes_down = path.bytes_down();
     sc.close();
-    drop(link);
-    drop(server);
+    drop(path);
 
     let name = link_name(&label);
     let db_name =
         a.db.file_stem()
             .map(|x| x.to_string_lossy().to_string())
             .unwrap_or_default();
-    let csv = if a.dbs.len() > 1 {
-        format!("flight-{name}-{policy}-{}.csv", link_name(&db_name))
+    let tr = if a.transports.len() > 1 {
+        format!("-{transport}")
     } else {
-        format!("flight-{name}-{policy}.csv")
+        String::new()
+    };
+    let csv = if a.dbs.len() > 1 {
+        format!("flight-{name}{tr}-{policy}-{}.csv", link_name(&db_name))
+    } else {
+        format!("flight-{name}{tr}-{policy}.csv")
     };
     write_csv(&a.out.join(csv), &rows)?;
 
@@ -616,6 +736,7 @@ fn run_link(
     Ok((
         Summary {
             label,
+            transport,
             db: db_name,
             policy,
             error_integral,
@@ -627,7 +748,7 @@ fn run_link(
             first_frame_ms,
             connect_ms,
             bytes: counters.bytes_received,
-            link_bytes_down: link_stats.bytes_down - warm_up_bytes,
+            link_bytes_down: link_bytes_down - warm_up_bytes,
             zero_rtt,
             relevant_pct: 100.0 * totals.relevant_ratio(),
             forced_pct: 100.0 * totals.forced_ratio(),
@@ -703,11 +824,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| database | link | policy | ∫ mean SSE dt | ∫ max SSE dt | ∫ per-pixel SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | transport | policy | ∫ mean SSE dt | ∫ max SSE dt | ∫ per-pixel SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
         let stops: Vec<String> = s
@@ -720,10 +841,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {} | {}{} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
+            s.transport,
             s.policy,
             s.error_integral,
             s.max_sse_integral,
