@@ -28,6 +28,9 @@ pub enum TlsError {
     /// rustls refused the configuration.
     #[error("invalid TLS configuration")]
     Config(#[source] rustls::Error),
+    /// No root certificate could be loaded from the system.
+    #[error("no system root certificates ({0})")]
+    NoSystemRoots(String),
 }
 
 /// How the client authenticates the server.
@@ -38,6 +41,9 @@ pub enum ServerTrust {
     /// Trust these CA (or self-signed) certificates, DER encoded, with the
     /// usual name checks against the server name given at connect time.
     Certificates(Vec<Vec<u8>>),
+    /// Trust the operating system's root certificates (a public HTTPS
+    /// server, object store or CDN).
+    System,
 }
 
 /// Installs ring as the process-wide rustls provider (idempotent). The
@@ -148,6 +154,19 @@ pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, T
                 roots
                     .add(CertificateDer::from(der.clone()))
                     .map_err(TlsError::BadCertificate)?;
+            }
+            builder.with_root_certificates(roots).with_no_client_auth()
+        }
+        ServerTrust::System => {
+            let found = rustls_native_certs::load_native_certs();
+            let mut roots = rustls::RootCertStore::empty();
+            let (added, _) = roots.add_parsable_certificates(found.certs);
+            if added == 0 {
+                let why = found
+                    .errors
+                    .first()
+                    .map_or("none found".to_string(), |e| e.to_string());
+                return Err(TlsError::NoSystemRoots(why));
             }
             builder.with_root_certificates(roots).with_no_client_auth()
         }

@@ -3,6 +3,7 @@
 //! ```text
 //! planet-view --local                          # window, embedded procedural planet
 //! planet-view --server ADDR --token T --database NAME --fingerprint HEX
+//! planet-view --url https://host/path/earth.planetdb   # any HTTPS server, HTTP/2 ranges
 //! planet-view render --trajectory rainier --local --out frames/ --reference
 //! planet-view snapshot --db earth.planetdb --eye LAT,LON,ALT --target LAT,LON,ALT --out a.png
 //! ```
@@ -35,6 +36,12 @@ struct SourceArgs {
     /// A remote planet-server (UDP address).
     #[arg(long, value_name = "ADDR", conflicts_with_all = ["local", "db"])]
     server: Option<SocketAddr>,
+    /// A database file on any HTTPS server that serves byte ranges over
+    /// HTTP/2 (nginx, an object store, a CDN): no planet-server needed. The
+    /// system's root certificates are trusted, or --fingerprint pins a
+    /// self-signed one.
+    #[arg(long, value_name = "URL", conflicts_with_all = ["local", "db", "server"])]
+    url: Option<String>,
     /// Tenant token for --server.
     #[arg(long, default_value = "")]
     token: String,
@@ -44,7 +51,8 @@ struct SourceArgs {
     /// Database name for --server.
     #[arg(long)]
     database: Option<String>,
-    /// SHA-256 fingerprint (hex) of the server certificate for --server.
+    /// SHA-256 fingerprint (hex) of the server certificate for --server (or
+    /// for --url, pinning a self-signed certificate).
     #[arg(long)]
     fingerprint: Option<String>,
     /// Simulated link between client and server, e.g. `10mbit,50ms,1%loss`.
@@ -54,6 +62,12 @@ struct SourceArgs {
 
 impl SourceArgs {
     fn source(&self) -> Result<Source> {
+        if let Some(url) = &self.url {
+            return Ok(Source::Url {
+                url: url.clone(),
+                fingerprint: self.fingerprint.clone(),
+            });
+        }
         if let Some(addr) = self.server {
             let database = self
                 .database

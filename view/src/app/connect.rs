@@ -6,6 +6,7 @@ use planet_client::ClientConfig;
 use planet_linksim::{Link, LinkConfig};
 use planet_protocol::message::Hello;
 use planet_server::{Server, ServerConfig, ServerHandle};
+use planet_session::http::HttpSessionConfig;
 use planet_session::net::SessionConfig;
 use planet_session::streaming::{StreamingClient, StreamingError};
 use planet_session::tls;
@@ -55,8 +56,8 @@ pub enum SetupError {
     /// Connecting failed.
     #[error("connecting to {addr}: {source}")]
     Connect {
-        /// The address.
-        addr: SocketAddr,
+        /// The address (or URL).
+        addr: String,
         /// The error.
         source: StreamingError,
     },
@@ -72,6 +73,14 @@ pub enum Source {
     Local,
     /// A database file, served in-process.
     Db(PathBuf),
+    /// A database file on any HTTPS server (HTTP/2 byte ranges).
+    Url {
+        /// `https://host/path/file.planetdb`.
+        url: String,
+        /// Pinned SHA-256 fingerprint of its certificate (hex), for a
+        /// self-signed one; otherwise the system's roots.
+        fingerprint: Option<String>,
+    },
     /// A remote server.
     Remote {
         /// Address.
@@ -202,10 +211,19 @@ pub struct Endpoint {
     pub link: Option<Link>,
     /// The database file, when it is local.
     pub db_path: Option<PathBuf>,
-    /// Session configuration (server address or link address).
-    pub session: SessionConfig,
-    /// Session configuration bypassing the link (for a reference client).
-    pub direct: SessionConfig,
+    /// How to reach the data (the server or link address, or the URL).
+    pub session: Target,
+    /// The same bypassing the link (for a reference client).
+    pub direct: Target,
+}
+
+/// A session's transport and where it goes.
+#[derive(Debug, Clone)]
+pub enum Target {
+    /// planet-server over QUIC.
+    Quic(SessionConfig),
+    /// A file over HTTP/2 byte ranges.
+    Http(HttpSessionConfig),
 }
 
 /// Start the source (server, link) on `rt`.
@@ -215,6 +233,27 @@ pub fn start(
     link: Option<&LinkConfig>,
 ) -> Result<Endpoint, SetupError> {
     tls::install_crypto_provider();
+    if let Source::Url { url, fingerprint } = source {
+        if link.is_some() {
+            return Err(SetupError::Server(
+                "--link shapes QUIC (UDP) only; for a URL use planet-bench flight --transport http2"
+                    .into(),
+            ));
+        }
+        let tls_cfg = match fingerprint {
+            Some(fp) => tls::pinned(fp)?,
+            None => tls::client_config(&tls::ServerTrust::System)?,
+        };
+        let cfg = HttpSessionConfig::from_url(url, tls_cfg)
+            .map_err(|e| SetupError::Server(e.to_string()))?;
+        return Ok(Endpoint {
+            server: None,
+            link: None,
+            db_path: None,
+            session: Target::Http(cfg.clone()),
+            direct: Target::Http(cfg),
+        });
+    }
     let (server, db_path, addr, fingerprint, hello) = match source {
         Source::Local | Source::Db(_) => {
             let path = match source {
@@ -244,6 +283,7 @@ pub fn start(
                 Hello::new("public", "", name),
             )
         }
+        Source::Url { .. } => unreachable!("handled above"),
         Source::Remote {
             addr,
             token,
@@ -275,23 +315,36 @@ pub fn start(
         server,
         link,
         db_path,
-        session,
-        direct,
+        session: Target::Quic(session),
+        direct: Target::Quic(direct),
     })
 }
 
 /// Connect a streaming client.
 pub fn connect(
     rt: &tokio::runtime::Runtime,
-    session: &SessionConfig,
+    target: &Target,
     cfg: ClientConfig,
 ) -> Result<StreamingClient, SetupError> {
-    StreamingClient::connect(rt.handle(), session.clone(), cfg, Duration::from_secs(10)).map_err(
-        |source| SetupError::Connect {
-            addr: session.addr,
-            source,
-        },
-    )
+    let timeout = Duration::from_secs(10);
+    match target {
+        Target::Quic(session) => {
+            StreamingClient::connect(rt.handle(), session.clone(), cfg, timeout).map_err(|source| {
+                SetupError::Connect {
+                    addr: session.addr.to_string(),
+                    source,
+                }
+            })
+        }
+        Target::Http(session) => {
+            StreamingClient::connect_http(rt.handle(), session.clone(), cfg, timeout).map_err(
+                |source| SetupError::Connect {
+                    addr: session.url.to_string(),
+                    source,
+                },
+            )
+        }
+    }
 }
 
 impl Endpoint {
