@@ -587,7 +587,9 @@ fn run_link(
             if a.warm {
                 bail!("--warm applies to QUIC only (0-RTT resumption)");
             }
-            let tls = planet_session::tls::trusting(&nginx.cert_der)?;
+            let tls = planet_session::tls::https_config(
+                &planet_session::tls::ServerTrust::Certificates(vec![nginx.cert_der.clone()]),
+            )?;
             let session = HttpSessionConfig::from_url(&nginx.url(), tls)?;
             let t_connect = Instant::now();
             let sc = StreamingClient::connect_http(

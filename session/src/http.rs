@@ -49,8 +49,8 @@ use crate::net::{jittered, set_status, Cmd, NetError, NetEvent, Session, Session
 pub struct HttpSessionConfig {
     /// `https://host[:port]/path/to/file.planetdb`.
     pub url: Uri,
-    /// TLS configuration (see [`crate::tls`]); its ALPN list is replaced by
-    /// `h2`.
+    /// TLS configuration ([`crate::tls::https_config`]); its ALPN list is
+    /// replaced by `h2`.
     pub tls: Arc<rustls::ClientConfig>,
     /// First reconnect delay.
     pub backoff_initial: Duration,
@@ -94,7 +94,7 @@ pub enum HttpError {
     #[error("not an https URL with a host: {0}")]
     Url(String),
     /// Name resolution, TCP or TLS failed.
-    #[error("cannot reach {host}:{port}")]
+    #[error("cannot reach {host}:{port}: {source}")]
     Io {
         /// Host.
         host: String,

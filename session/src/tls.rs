@@ -136,11 +136,34 @@ fn provider() -> Arc<CryptoProvider> {
 /// A rustls client configuration for the planet protocol (TLS 1.3, ALPN
 /// `planet/1`, ring) with the given trust.
 pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, TlsError> {
+    let mut cfg = build(trust, &[&rustls::version::TLS13])?;
+    cfg.alpn_protocols = vec![planet_protocol::ALPN.to_vec()];
+    // 0-RTT: a resumed session may carry the Hello as early data
+    // (`ConnectOptions::zero_rtt`); the session tickets are kept in this
+    // configuration's in-memory resumption store, shared by every
+    // connection made with it.
+    cfg.enable_early_data = true;
+    Ok(Arc::new(cfg))
+}
+
+/// A rustls client configuration for HTTPS servers (the HTTP/2 transport,
+/// [`crate::http`]): TLS 1.3 or 1.2 (many static hosts still default to
+/// 1.2: nginx before 1.23.4), ALPN `h2`, ring, with the given trust.
+pub fn https_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, TlsError> {
+    let mut cfg = build(trust, &[&rustls::version::TLS13, &rustls::version::TLS12])?;
+    cfg.alpn_protocols = vec![b"h2".to_vec()];
+    Ok(Arc::new(cfg))
+}
+
+fn build(
+    trust: &ServerTrust,
+    versions: &[&'static rustls::SupportedProtocolVersion],
+) -> Result<rustls::ClientConfig, TlsError> {
     let provider = provider();
     let builder = rustls::ClientConfig::builder_with_provider(Arc::clone(&provider))
-        .with_protocol_versions(&[&rustls::version::TLS13])
+        .with_protocol_versions(versions)
         .map_err(TlsError::Config)?;
-    let mut cfg = match trust {
+    let cfg = match trust {
         ServerTrust::Fingerprint(fp) => builder
             .dangerous()
             .with_custom_certificate_verifier(Arc::new(PinnedVerifier {
@@ -171,13 +194,7 @@ pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, T
             builder.with_root_certificates(roots).with_no_client_auth()
         }
     };
-    cfg.alpn_protocols = vec![planet_protocol::ALPN.to_vec()];
-    // 0-RTT: a resumed session may carry the Hello as early data
-    // (`ConnectOptions::zero_rtt`); the session tickets are kept in this
-    // configuration's in-memory resumption store, shared by every
-    // connection made with it.
-    cfg.enable_early_data = true;
-    Ok(Arc::new(cfg))
+    Ok(cfg)
 }
 
 /// Pins the server certificate by its hex SHA-256 fingerprint.

@@ -24,7 +24,8 @@ fn nginx(file: &Path) -> Option<Nginx> {
 }
 
 fn connect_http(rt: &tokio::runtime::Runtime, ng: &Nginx) -> StreamingClient {
-    let tls = planet_session::tls::trusting(&ng.cert_der).expect("tls");
+    let trust = planet_session::tls::ServerTrust::Certificates(vec![ng.cert_der.clone()]);
+    let tls = planet_session::tls::https_config(&trust).expect("tls");
     let cfg = HttpSessionConfig::from_url(&ng.url(), tls).expect("url");
     StreamingClient::connect_http(rt.handle(), cfg, client_cfg(), Duration::from_secs(10))
         .expect("welcome over HTTP/2")

@@ -240,10 +240,11 @@ pub fn start(
                     .into(),
             ));
         }
-        let tls_cfg = match fingerprint {
-            Some(fp) => tls::pinned(fp)?,
-            None => tls::client_config(&tls::ServerTrust::System)?,
+        let trust = match fingerprint {
+            Some(fp) => tls::ServerTrust::Fingerprint(tls::parse_fingerprint(fp)?),
+            None => tls::ServerTrust::System,
         };
+        let tls_cfg = tls::https_config(&trust)?;
         let cfg = HttpSessionConfig::from_url(url, tls_cfg)
             .map_err(|e| SetupError::Server(e.to_string()))?;
         return Ok(Endpoint {
