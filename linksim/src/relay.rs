@@ -13,7 +13,7 @@ use tokio::sync::mpsc;
 use tokio::task::AbortHandle;
 
 use crate::config::LinkConfig;
-use crate::shaper::{Shaper, Verdict};
+use crate::shaper::{Shaper, Timed, Verdict};
 
 /// A client that sent nothing and received nothing for this long loses its
 /// upstream socket (like a NAT mapping timing out); if it sends again it gets
@@ -88,32 +88,16 @@ enum Dir {
     Down,
 }
 
-/// A datagram waiting for its delivery time.
+/// A datagram and where it goes.
 #[derive(Debug)]
-struct Scheduled {
-    at: Instant,
-    seq: u64,
+struct Datagram {
     data: Vec<u8>,
     socket: Arc<UdpSocket>,
     dest: SocketAddr,
 }
 
-impl PartialEq for Scheduled {
-    fn eq(&self, other: &Self) -> bool {
-        (self.at, self.seq) == (other.at, other.seq)
-    }
-}
-impl Eq for Scheduled {}
-impl PartialOrd for Scheduled {
-    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(other))
-    }
-}
-impl Ord for Scheduled {
-    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
-        (self.at, self.seq).cmp(&(other.at, other.seq))
-    }
-}
+/// A datagram waiting for its delivery time.
+type Scheduled = Timed<Datagram>;
 
 struct ShaperState {
     shaper: Shaper,
@@ -356,9 +340,11 @@ impl Inner {
                 let _ = d.tx.send(Scheduled {
                     at,
                     seq,
-                    data: data.to_vec(),
-                    socket: socket.clone(),
-                    dest,
+                    item: Datagram {
+                        data: data.to_vec(),
+                        socket: socket.clone(),
+                        dest,
+                    },
                 });
             }
             Verdict::DropLoss => {
@@ -374,6 +360,7 @@ impl Inner {
     }
 
     async fn deliver(&self, dir: Dir, p: Scheduled) {
+        let p = p.item;
         let d = self.direction(dir);
         d.in_flight.fetch_sub(p.data.len(), Ordering::Relaxed);
         if self.blackhole.load(Ordering::Relaxed) {

@@ -25,6 +25,33 @@ pub(crate) enum Verdict {
     DropBlackhole,
 }
 
+/// A packet (any kind: a datagram and its destination, an IP packet) and
+/// the time it leaves the link; ordered by that time, then by `seq` (the
+/// order the times were decided), for the delivery heaps.
+#[derive(Debug)]
+pub(crate) struct Timed<T> {
+    pub(crate) at: Instant,
+    pub(crate) seq: u64,
+    pub(crate) item: T,
+}
+
+impl<T> PartialEq for Timed<T> {
+    fn eq(&self, other: &Self) -> bool {
+        (self.at, self.seq) == (other.at, other.seq)
+    }
+}
+impl<T> Eq for Timed<T> {}
+impl<T> PartialOrd for Timed<T> {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl<T> Ord for Timed<T> {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        (self.at, self.seq).cmp(&(other.at, other.seq))
+    }
+}
+
 /// One direction's state: configuration, RNG, and the bottleneck's virtual
 /// clock.
 #[derive(Debug)]

@@ -37,7 +37,7 @@ use tokio::task::AbortHandle;
 use tokio_tun::Tun;
 
 use crate::config::{LinkConfig, PER_PACKET_OVERHEAD};
-use crate::shaper::{Shaper, Verdict};
+use crate::shaper::{Shaper, Timed, Verdict};
 
 /// Largest IP packet read from a TUN device (its MTU is 1 500).
 const MAX_PACKET: usize = 65_536;
@@ -230,29 +230,8 @@ fn far_tun(ns: &str, slot: u32, addr: Ipv4Addr, peer: Ipv4Addr) -> io::Result<Tu
     })
 }
 
-/// A packet and when it leaves the link.
-struct Scheduled {
-    at: Instant,
-    seq: u64,
-    packet: Vec<u8>,
-}
-
-impl PartialEq for Scheduled {
-    fn eq(&self, o: &Self) -> bool {
-        (self.at, self.seq) == (o.at, o.seq)
-    }
-}
-impl Eq for Scheduled {}
-impl PartialOrd for Scheduled {
-    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(o))
-    }
-}
-impl Ord for Scheduled {
-    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
-        (self.at, self.seq).cmp(&(o.at, o.seq))
-    }
-}
+/// An IP packet and when it leaves the link.
+type Scheduled = Timed<Vec<u8>>;
 
 async fn read_loop(
     from: Arc<Tun>,
@@ -283,8 +262,8 @@ async fn read_loop(
         match verdict {
             Verdict::Deliver(at) => {
                 seq += 1;
-                let packet = buf[..n].to_vec();
-                if tx.send(Scheduled { at, seq, packet }).is_err() {
+                let item = buf[..n].to_vec();
+                if tx.send(Scheduled { at, seq, item }).is_err() {
                     return;
                 }
             }
@@ -311,9 +290,9 @@ async fn deliver_loop(
             if let Some(Reverse(p)) = heap.pop() {
                 if !up {
                     c.bytes_down
-                        .fetch_add(p.packet.len() as u64, Ordering::Relaxed);
+                        .fetch_add(p.item.len() as u64, Ordering::Relaxed);
                 }
-                if let Err(e) = to.send(&p.packet).await {
+                if let Err(e) = to.send(&p.item).await {
                     tracing::debug!(error = %e, "linksim: TUN write failed");
                 }
             }

@@ -26,7 +26,6 @@
 //! Only HTTP/2 (ALPN `h2`) is spoken: without multiplexing, HTTP/1.1 would
 //! need a pool of connections to keep requests in flight (not built yet).
 
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -40,9 +39,11 @@ use hyper::{Request, StatusCode, Uri};
 use planet_core::format::{Superblock, SUPERBLOCK_LEN};
 use planet_protocol::{ErrorCode, ErrorMsg, Limits, Welcome, PROTOCOL_VERSION};
 use tokio::sync::mpsc;
-use tokio::task::JoinSet;
 
-use crate::net::{jittered, set_status, Cmd, NetError, NetEvent, Session, SessionHandle, Status};
+use crate::net::{
+    jittered, serve_requests, set_status, while_disconnected, Cmd, NetError, NetEvent, Session,
+    SessionHandle, Status,
+};
 
 /// Configuration of an HTTP [`Session`] ([`Session::spawn_http`]).
 #[derive(Debug, Clone)]
@@ -329,18 +330,8 @@ async fn run_http(
     let mut backoff = cfg.backoff_initial;
     loop {
         let connect = tokio::time::timeout(cfg.connect_timeout, connect(&cfg));
-        tokio::pin!(connect);
-        let result = loop {
-            tokio::select! {
-                r = &mut connect => break r,
-                c = cmd_rx.recv() => match c {
-                    None | Some(Cmd::Close) => return,
-                    Some(Cmd::Request { id, .. }) => {
-                        let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
-                    }
-                    Some(Cmd::Cancel { .. }) => {}
-                },
-            }
+        let Some(result) = while_disconnected(connect, &mut cmd_rx, &ev).await else {
+            return;
         };
         match result {
             Ok(Ok((conn, welcome))) => {
@@ -350,7 +341,24 @@ async fn run_http(
                     s.welcome = Some(welcome.clone());
                 });
                 let _ = ev.send(NetEvent::Connected(welcome));
-                let user_closed = serve(&conn, &mut cmd_rx, &ev).await;
+                let mut closed = conn.closed.clone();
+                let c = conn.clone();
+                let user_closed = serve_requests(
+                    &mut cmd_rx,
+                    &ev,
+                    move |_id, offset, size| {
+                        let c = c.clone();
+                        async move { c.fetch(offset, size).await }
+                    },
+                    async move {
+                        let _ = closed.wait_for(|c| *c).await;
+                        NetError::ConnectionLost {
+                            code: None,
+                            reason: "HTTP/2 connection closed".into(),
+                        }
+                    },
+                )
+                .await;
                 set_status(&status, |s| s.connected = false);
                 if user_closed {
                     return;
@@ -365,98 +373,8 @@ async fn run_http(
         }
         let sleep = tokio::time::sleep(jittered(backoff));
         backoff = (backoff * 2).min(cfg.backoff_max);
-        tokio::pin!(sleep);
-        loop {
-            tokio::select! {
-                _ = &mut sleep => break,
-                c = cmd_rx.recv() => match c {
-                    None | Some(Cmd::Close) => return,
-                    Some(Cmd::Request { id, .. }) => {
-                        let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
-                    }
-                    Some(Cmd::Cancel { .. }) => {}
-                },
-            }
+        if while_disconnected(sleep, &mut cmd_rx, &ev).await.is_none() {
+            return;
         }
     }
-}
-
-/// Serves requests on one HTTP/2 connection; true if the user closed the
-/// session, false if the connection was lost (or the file replaced).
-async fn serve(
-    conn: &Conn,
-    cmd_rx: &mut mpsc::UnboundedReceiver<Cmd>,
-    ev: &crossbeam_channel::Sender<NetEvent>,
-) -> bool {
-    let mut tasks: JoinSet<(u64, Result<Vec<u8>, NetError>)> = JoinSet::new();
-    let mut pending: HashMap<u64, tokio::task::AbortHandle> = HashMap::new();
-    let mut closed = conn.closed.clone();
-    let user_closed = loop {
-        tokio::select! {
-            c = cmd_rx.recv() => match c {
-                None | Some(Cmd::Close) => break true,
-                Some(Cmd::Request { id, offset, size }) => {
-                    if pending.contains_key(&id) {
-                        let _ = ev.send(NetEvent::Failed {
-                            id,
-                            error: NetError::Server(ErrorMsg::new(
-                                ErrorCode::DuplicateRequest,
-                                "request id already in flight (client side)",
-                            )),
-                        });
-                        continue;
-                    }
-                    let c = conn.clone();
-                    let h = tasks.spawn(async move { (id, c.fetch(offset, size).await) });
-                    pending.insert(id, h);
-                }
-                Some(Cmd::Cancel { id }) => {
-                    // Dropping the request resets its HTTP/2 stream.
-                    if let Some(h) = pending.remove(&id) {
-                        h.abort();
-                        let _ = ev.send(NetEvent::Cancelled { id });
-                    }
-                }
-            },
-            Some(done) = tasks.join_next(), if !tasks.is_empty() => {
-                let Ok((id, result)) = done else { continue };
-                if pending.remove(&id).is_none() {
-                    continue;
-                }
-                match result {
-                    Ok(bytes) => {
-                        let _ = ev.send(NetEvent::Record { id, bytes });
-                    }
-                    Err(error) if error.is_connection_error() => {
-                        tracing::info!(%error, "HTTP connection lost");
-                        let _ = ev.send(NetEvent::Failed { id, error: error.clone() });
-                        for (id, h) in pending.drain() {
-                            h.abort();
-                            let _ = ev.send(NetEvent::Failed { id, error: error.clone() });
-                        }
-                        break false;
-                    }
-                    Err(error) => {
-                        let _ = ev.send(NetEvent::Failed { id, error });
-                    }
-                }
-            }
-            _ = closed.wait_for(|c| *c) => {
-                let error = NetError::ConnectionLost { code: None, reason: "HTTP/2 connection closed".into() };
-                for (id, h) in pending.drain() {
-                    h.abort();
-                    let _ = ev.send(NetEvent::Failed { id, error: error.clone() });
-                }
-                break false;
-            }
-        }
-    };
-    if user_closed {
-        for (id, h) in pending.drain() {
-            h.abort();
-            let _ = ev.send(NetEvent::Cancelled { id });
-        }
-    }
-    tasks.shutdown().await;
-    user_closed
 }

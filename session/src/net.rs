@@ -847,18 +847,8 @@ async fn run_session(
             cfg.hello.clone(),
             &cfg.options,
         );
-        tokio::pin!(connect);
-        let result = loop {
-            tokio::select! {
-                r = &mut connect => break r,
-                c = cmd_rx.recv() => match c {
-                    None | Some(Cmd::Close) => return,
-                    Some(Cmd::Request { id, .. }) => {
-                        let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
-                    }
-                    Some(Cmd::Cancel { .. }) => {}
-                },
-            }
+        let Some(result) = while_disconnected(connect, &mut cmd_rx, &ev).await else {
+            return;
         };
         match result {
             Ok((conn, welcome)) => {
@@ -871,7 +861,17 @@ async fn run_session(
                     s.quic = Some(conn.quinn().clone());
                 });
                 let _ = ev.send(NetEvent::Connected(welcome));
-                let user_closed = serve_session(&conn, &mut cmd_rx, &ev).await;
+                let c = conn.clone();
+                let user_closed = serve_requests(
+                    &mut cmd_rx,
+                    &ev,
+                    move |id, offset, size| {
+                        let c = c.clone();
+                        async move { c.fetch(id, offset, size).await }
+                    },
+                    conn.closed(),
+                )
+                .await;
                 set_status(&status, |s| {
                     s.connected = false;
                     s.quic = None;
@@ -889,31 +889,62 @@ async fn run_session(
         }
         let sleep = tokio::time::sleep(jittered(backoff));
         backoff = (backoff * 2).min(cfg.backoff_max);
-        tokio::pin!(sleep);
-        loop {
-            tokio::select! {
-                _ = &mut sleep => break,
-                c = cmd_rx.recv() => match c {
-                    None | Some(Cmd::Close) => return,
-                    Some(Cmd::Request { id, .. }) => {
-                        let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
-                    }
-                    Some(Cmd::Cancel { .. }) => {}
-                },
-            }
+        if while_disconnected(sleep, &mut cmd_rx, &ev).await.is_none() {
+            return;
         }
     }
 }
 
-/// Serves requests on one connection; returns true if the user closed the
-/// session, false if the connection was lost.
-async fn serve_session(
-    conn: &Connection,
+/// Runs `fut` (a connection attempt or a backoff pause) while requests fail
+/// at once with [`NetError::NotConnected`]; `None` if the user closed the
+/// session meanwhile. Shared by the QUIC and HTTP sessions.
+pub(crate) async fn while_disconnected<F: std::future::Future>(
+    fut: F,
     cmd_rx: &mut mpsc::UnboundedReceiver<Cmd>,
     ev: &crossbeam_channel::Sender<NetEvent>,
-) -> bool {
+) -> Option<F::Output> {
+    tokio::pin!(fut);
+    loop {
+        tokio::select! {
+            r = &mut fut => return Some(r),
+            c = cmd_rx.recv() => match c {
+                None | Some(Cmd::Close) => return None,
+                Some(Cmd::Request { id, .. }) => {
+                    let _ = ev.send(NetEvent::Failed { id, error: NetError::NotConnected });
+                }
+                Some(Cmd::Cancel { .. }) => {}
+            },
+        }
+    }
+}
+
+/// Serves requests on one connection, one task per request made by
+/// `fetch(id, offset, size)`, until the user closes the session (`true`) or
+/// the connection is lost (`false`): `closed` completes, or a request fails
+/// with a connection error (an HTTP `412`, a reset connection). Shared by
+/// the QUIC and HTTP sessions.
+pub(crate) async fn serve_requests<Fetch, Fut>(
+    cmd_rx: &mut mpsc::UnboundedReceiver<Cmd>,
+    ev: &crossbeam_channel::Sender<NetEvent>,
+    fetch: Fetch,
+    closed: impl std::future::Future<Output = NetError>,
+) -> bool
+where
+    Fetch: Fn(u64, u64, u32) -> Fut,
+    Fut: std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static,
+{
     let mut tasks: JoinSet<(u64, Result<Vec<u8>, NetError>)> = JoinSet::new();
     let mut pending: HashMap<u64, tokio::task::AbortHandle> = HashMap::new();
+    let fail_all = |pending: &mut HashMap<u64, tokio::task::AbortHandle>, error: &NetError| {
+        for (id, h) in pending.drain() {
+            h.abort();
+            let _ = ev.send(NetEvent::Failed {
+                id,
+                error: error.clone(),
+            });
+        }
+    };
+    tokio::pin!(closed);
     let user_closed = loop {
         tokio::select! {
             c = cmd_rx.recv() => match c {
@@ -929,11 +960,13 @@ async fn serve_session(
                         });
                         continue;
                     }
-                    let c = conn.clone();
-                    let h = tasks.spawn(async move { (id, c.fetch(id, offset, size).await) });
+                    let f = fetch(id, offset, size);
+                    let h = tasks.spawn(async move { (id, f.await) });
                     pending.insert(id, h);
                 }
                 Some(Cmd::Cancel { id }) => {
+                    // Aborting the task drops the request: QUIC stops its
+                    // stream, HTTP/2 resets it.
                     if let Some(h) = pending.remove(&id) {
                         h.abort();
                         let _ = ev.send(NetEvent::Cancelled { id });
@@ -941,21 +974,28 @@ async fn serve_session(
                 }
             },
             Some(done) = tasks.join_next(), if !tasks.is_empty() => {
-                if let Ok((id, result)) = done {
-                    if pending.remove(&id).is_some() {
-                        let _ = ev.send(match result {
-                            Ok(bytes) => NetEvent::Record { id, bytes },
-                            Err(error) => NetEvent::Failed { id, error },
-                        });
+                let Ok((id, result)) = done else { continue };
+                if pending.remove(&id).is_none() {
+                    continue;
+                }
+                match result {
+                    Ok(bytes) => {
+                        let _ = ev.send(NetEvent::Record { id, bytes });
+                    }
+                    Err(error) if error.is_connection_error() => {
+                        tracing::info!(%error, "connection lost");
+                        let _ = ev.send(NetEvent::Failed { id, error: error.clone() });
+                        fail_all(&mut pending, &error);
+                        break false;
+                    }
+                    Err(error) => {
+                        let _ = ev.send(NetEvent::Failed { id, error });
                     }
                 }
             }
-            reason = conn.closed() => {
+            reason = &mut closed => {
                 tracing::info!(error = %reason, "connection lost");
-                for (id, h) in pending.drain() {
-                    h.abort();
-                    let _ = ev.send(NetEvent::Failed { id, error: reason.clone() });
-                }
+                fail_all(&mut pending, &reason);
                 break false;
             }
         }
