@@ -23,8 +23,11 @@
 //! - a lost connection fails what is in flight with a connection error and
 //!   reconnects with the same capped, jittered backoff.
 //!
-//! Only HTTP/2 (ALPN `h2`) is spoken: without multiplexing, HTTP/1.1 would
-//! need a pool of connections to keep requests in flight (not built yet).
+//! HTTP/2 (ALPN `h2`) is preferred. A server that offers only HTTP/1.1 gets
+//! a pool of [`HTTP1_CONNECTIONS`] keep-alive connections, one request on
+//! each at a time (HTTP/1.1 has no multiplexing); a cancelled request
+//! closes its connection (HTTP/1.1 cannot abandon a response), and the next
+//! request on that slot opens a new one.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -44,6 +47,9 @@ use crate::net::{
     jittered, serve_requests, set_status, while_disconnected, Cmd, NetError, NetEvent, Session,
     SessionHandle, Status,
 };
+
+/// Connections to a server that speaks only HTTP/1.1 (browsers open 6).
+pub const HTTP1_CONNECTIONS: usize = 8;
 
 /// Configuration of an HTTP [`Session`] ([`Session::spawn_http`]).
 #[derive(Debug, Clone)]
@@ -105,11 +111,8 @@ pub enum HttpError {
         #[source]
         source: std::io::Error,
     },
-    /// The server did not agree to HTTP/2.
-    #[error("the server does not speak HTTP/2 (ALPN h2)")]
-    NoHttp2,
-    /// The HTTP/2 handshake or a request failed.
-    #[error("HTTP/2")]
+    /// The HTTP handshake or a request failed.
+    #[error("HTTP: {0}")]
     Http(#[source] hyper::Error),
     /// The server answered the superblock or header request wrongly.
     #[error("{what}: HTTP {status}")]
@@ -124,10 +127,70 @@ pub enum HttpError {
     Format(#[source] planet_core::format::FormatError),
 }
 
-/// One connection's state: the HTTP/2 sender and the pinned file version.
+/// Opens connections to the URL's server: TCP, then TLS with ALPN.
+struct Dialer {
+    host: String,
+    port: u16,
+    name: rustls::pki_types::ServerName<'static>,
+    tls: tokio_rustls::TlsConnector,
+}
+
+type Tls = tokio_rustls::client::TlsStream<tokio::net::TcpStream>;
+type Http1 = hyper::client::conn::http1::SendRequest<Empty<Bytes>>;
+
+impl Dialer {
+    async fn dial(&self) -> Result<Tls, HttpError> {
+        let io_err = |source| HttpError::Io {
+            host: self.host.clone(),
+            port: self.port,
+            source,
+        };
+        let tcp = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
+            .await
+            .map_err(io_err)?;
+        let _ = tcp.set_nodelay(true);
+        self.tls
+            .connect(self.name.clone(), tcp)
+            .await
+            .map_err(io_err)
+    }
+
+    /// An HTTP/1.1 connection over `stream` (its driver spawned).
+    async fn http1(stream: Tls) -> Result<Http1, HttpError> {
+        let (send, driver) =
+            hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
+                .await
+                .map_err(HttpError::Http)?;
+        tokio::spawn(async move {
+            if let Err(e) = driver.await {
+                tracing::debug!(error = %e, "HTTP/1.1 connection ended");
+            }
+        });
+        Ok(send)
+    }
+}
+
+/// A server that speaks only HTTP/1.1: [`HTTP1_CONNECTIONS`] slots, each
+/// an idle connection, none yet, or one request in flight.
+struct Http1Pool {
+    dialer: Dialer,
+    slots: Vec<tokio::sync::Mutex<Option<Http1>>>,
+    free: tokio::sync::Semaphore,
+    /// Kept so that the connection's `closed` never fires (a lost HTTP/1.1
+    /// connection is redialled per request).
+    _closed: tokio::sync::watch::Sender<bool>,
+}
+
+#[derive(Clone)]
+enum Sender {
+    H2(SendRequest<Empty<Bytes>>),
+    H1(Arc<Http1Pool>),
+}
+
+/// One connection's state: the HTTP sender and the pinned file version.
 #[derive(Clone)]
 struct Conn {
-    send: SendRequest<Empty<Bytes>>,
+    send: Sender,
     /// Becomes true when the HTTP/2 connection's driver ends.
     closed: tokio::sync::watch::Receiver<bool>,
     uri: Uri,
@@ -140,20 +203,37 @@ impl Conn {
         &self,
         first: u64,
         last: u64,
-    ) -> Result<(StatusCode, hyper::HeaderMap, Bytes), hyper::Error> {
-        // HTTP/2 takes `:authority` from the absolute URI (a Host header as
-        // well makes nginx answer 400).
-        let mut b = Request::get(self.uri.clone()).header(RANGE, format!("bytes={first}-{last}"));
+    ) -> Result<(StatusCode, hyper::HeaderMap, Bytes), HttpError> {
+        let mut b = match &self.send {
+            // HTTP/2 takes `:authority` from the absolute URI (a Host header
+            // as well makes nginx answer 400).
+            Sender::H2(_) => Request::get(self.uri.clone()),
+            // HTTP/1.1: the origin form and a Host header.
+            Sender::H1(_) => {
+                let path = self.uri.path_and_query().map_or("/", |p| p.as_str());
+                let host = self.uri.authority().map_or("", |a| a.as_str());
+                Request::get(path).header(hyper::header::HOST, host)
+            }
+        };
+        b = b.header(RANGE, format!("bytes={first}-{last}"));
         if let Some((k, v)) = &self.pin {
             b = b.header(k, v);
         }
         // Building from valid parts cannot fail.
         let req = b.body(Empty::new()).unwrap_or_default();
-        let mut send = self.send.clone();
-        let resp = send.send_request(req).await?;
-        let (parts, body) = resp.into_parts();
-        let bytes = body.collect().await?.to_bytes();
-        Ok((parts.status, parts.headers, bytes))
+        match &self.send {
+            Sender::H2(send) => {
+                let resp = send
+                    .clone()
+                    .send_request(req)
+                    .await
+                    .map_err(HttpError::Http)?;
+                let (parts, body) = resp.into_parts();
+                let bytes = body.collect().await.map_err(HttpError::Http)?.to_bytes();
+                Ok((parts.status, parts.headers, bytes))
+            }
+            Sender::H1(pool) => pool.request(req).await,
+        }
     }
 
     /// One record: `Ok` only for `206` with exactly `size` bytes.
@@ -192,15 +272,53 @@ impl Conn {
     }
 }
 
-fn lost(e: hyper::Error) -> NetError {
-    NetError::ConnectionLost {
-        code: None,
-        reason: format!("HTTP/2: {e}"),
+impl Http1Pool {
+    /// Sends `req` on a free slot's connection (opening one if the slot has
+    /// none or its connection closed) and reads the whole response. The
+    /// connection goes back to its slot only once the body is read: a
+    /// request dropped before (cancelled) takes its connection with it.
+    async fn request(
+        &self,
+        req: Request<Empty<Bytes>>,
+    ) -> Result<(StatusCode, hyper::HeaderMap, Bytes), HttpError> {
+        let _permit = self
+            .free
+            .acquire()
+            .await
+            .map_err(|_| HttpError::Url("HTTP/1.1 pool closed".into()))?;
+        // With a permit, some slot is free.
+        let mut slot = None;
+        for s in &self.slots {
+            if let Ok(g) = s.try_lock() {
+                slot = Some(g);
+                break;
+            }
+        }
+        let Some(mut slot) = slot else {
+            return Err(HttpError::Url("no free HTTP/1.1 connection".into()));
+        };
+        let mut send = match slot.take() {
+            Some(s) if !s.is_closed() => s,
+            _ => Dialer::http1(self.dialer.dial().await?).await?,
+        };
+        send.ready().await.map_err(HttpError::Http)?;
+        let resp = send.send_request(req).await.map_err(HttpError::Http)?;
+        let (parts, body) = resp.into_parts();
+        let bytes = body.collect().await.map_err(HttpError::Http)?.to_bytes();
+        *slot = Some(send);
+        Ok((parts.status, parts.headers, bytes))
     }
 }
 
-/// TCP + TLS (ALPN h2) + HTTP/2 handshake, then the superblock and the
-/// header. Returns the connection and the welcome made from them.
+fn lost(e: HttpError) -> NetError {
+    NetError::ConnectionLost {
+        code: None,
+        reason: format!("HTTP: {e}"),
+    }
+}
+
+/// TCP + TLS (ALPN h2, http/1.1) + the HTTP handshake, then the superblock
+/// and the header. Returns the connection and the welcome made from them.
 async fn connect(cfg: &HttpSessionConfig) -> Result<(Conn, Welcome), HttpError> {
     let url = &cfg.url;
     if url.scheme_str() != Some("https") {
@@ -213,38 +331,44 @@ async fn connect(cfg: &HttpSessionConfig) -> Result<(Conn, Welcome), HttpError> 
         .trim_end_matches(']')
         .to_string();
     let port = url.port_u16().unwrap_or(443);
-    let io_err = |source| HttpError::Io {
-        host: host.clone(),
-        port,
-        source,
-    };
-    let tcp = tokio::net::TcpStream::connect((host.as_str(), port))
-        .await
-        .map_err(io_err)?;
-    let _ = tcp.set_nodelay(true);
     let mut tls = (*cfg.tls).clone();
-    tls.alpn_protocols = vec![b"h2".to_vec()];
+    tls.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
     let name = rustls::pki_types::ServerName::try_from(host.clone())
         .map_err(|_| HttpError::Url(url.to_string()))?;
-    let stream = tokio_rustls::TlsConnector::from(Arc::new(tls))
-        .connect(name, tcp)
-        .await
-        .map_err(io_err)?;
-    if stream.get_ref().1.alpn_protocol() != Some(b"h2") {
-        return Err(HttpError::NoHttp2);
-    }
-    let io = hyper_util::rt::TokioIo::new(stream);
-    let (send, driver) =
-        hyper::client::conn::http2::handshake(hyper_util::rt::TokioExecutor::new(), io)
-            .await
-            .map_err(HttpError::Http)?;
+    let dialer = Dialer {
+        host,
+        port,
+        name,
+        tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
+    };
+    let stream = dialer.dial().await?;
     let (closed_tx, closed) = tokio::sync::watch::channel(false);
-    tokio::spawn(async move {
-        if let Err(e) = driver.await {
-            tracing::debug!(error = %e, "HTTP/2 connection ended");
-        }
-        let _ = closed_tx.send(true);
-    });
+    let send = if stream.get_ref().1.alpn_protocol() == Some(b"h2") {
+        let io = hyper_util::rt::TokioIo::new(stream);
+        let (send, driver) =
+            hyper::client::conn::http2::handshake(hyper_util::rt::TokioExecutor::new(), io)
+                .await
+                .map_err(HttpError::Http)?;
+        tokio::spawn(async move {
+            if let Err(e) = driver.await {
+                tracing::debug!(error = %e, "HTTP/2 connection ended");
+            }
+            let _ = closed_tx.send(true);
+        });
+        Sender::H2(send)
+    } else {
+        // No HTTP/2 offered: a pool of HTTP/1.1 connections, this one first.
+        tracing::info!(url = %cfg.url, "no HTTP/2: {HTTP1_CONNECTIONS} HTTP/1.1 connections");
+        let first = Dialer::http1(stream).await?;
+        let mut slots = vec![tokio::sync::Mutex::new(Some(first))];
+        slots.extend((1..HTTP1_CONNECTIONS).map(|_| tokio::sync::Mutex::new(None)));
+        Sender::H1(Arc::new(Http1Pool {
+            dialer,
+            slots,
+            free: tokio::sync::Semaphore::new(HTTP1_CONNECTIONS),
+            _closed: closed_tx,
+        }))
+    };
     let mut conn = Conn {
         send,
         closed,
@@ -252,10 +376,7 @@ async fn connect(cfg: &HttpSessionConfig) -> Result<(Conn, Welcome), HttpError> 
         pin: None,
     };
     // The superblock, and the version of the file it pins.
-    let (status, headers, sb) = conn
-        .get(0, SUPERBLOCK_LEN as u64 - 1)
-        .await
-        .map_err(HttpError::Http)?;
+    let (status, headers, sb) = conn.get(0, SUPERBLOCK_LEN as u64 - 1).await?;
     if status != StatusCode::PARTIAL_CONTENT {
         return Err(HttpError::Status {
             what: "superblock (bytes=0-63; does the server support ranges?)",
@@ -287,7 +408,7 @@ async fn connect(cfg: &HttpSessionConfig) -> Result<(Conn, Welcome), HttpError> 
     }
     let first = superblock.header_offset;
     let last = first + u64::from(superblock.header_len).max(1) - 1;
-    let (status, _, header) = conn.get(first, last).await.map_err(HttpError::Http)?;
+    let (status, _, header) = conn.get(first, last).await?;
     if status != StatusCode::PARTIAL_CONTENT || header.len() != superblock.header_len as usize {
         return Err(HttpError::Status {
             what: "header",

@@ -148,7 +148,7 @@ pub fn client_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, T
 
 /// A rustls client configuration for HTTPS servers (the HTTP/2 transport,
 /// [`crate::http`]): TLS 1.3 or 1.2 (many static hosts still default to
-/// 1.2: nginx before 1.23.4), ALPN `h2`, ring, with the given trust.
+/// 1.2: nginx before 1.23.4), ALPN `h2` (the HTTP session offers `http/1.1` too), ring, with the given trust.
 pub fn https_config(trust: &ServerTrust) -> Result<Arc<rustls::ClientConfig>, TlsError> {
     let mut cfg = build(trust, &[&rustls::version::TLS13, &rustls::version::TLS12])?;
     cfg.alpn_protocols = vec![b"h2".to_vec()];

@@ -66,14 +66,21 @@ impl Nginx {
         workers: usize,
     ) -> Result<Nginx, NginxError> {
         let port = TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
-        Nginx::launch(
-            bin,
-            file,
-            name,
-            workers,
-            ([127, 0, 0, 1], port).into(),
-            None,
-        )
+        let addr = ([127, 0, 0, 1], port).into();
+        Nginx::launch(bin, file, name, workers, addr, None, true)
+    }
+
+    /// [`Nginx::start`] without HTTP/2: ALPN offers `http/1.1` only, as an
+    /// old or minimal static host would.
+    pub fn start_http1_only(bin: &Path, file: &Path) -> Result<Nginx, NginxError> {
+        let name = file
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("db")
+            .to_string();
+        let port = TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+        let addr = ([127, 0, 0, 1], port).into();
+        Nginx::launch(bin, file, &name, 1, addr, None, false)
     }
 
     /// [`Nginx::start`] inside the network namespace `ns` (e.g. a
@@ -91,7 +98,7 @@ impl Nginx {
             .and_then(|n| n.to_str())
             .unwrap_or("db")
             .to_string();
-        Nginx::launch(bin, file, &name, workers, (ip, 8443).into(), Some(ns))
+        Nginx::launch(bin, file, &name, workers, (ip, 8443).into(), Some(ns), true)
     }
 
     fn launch(
@@ -101,7 +108,9 @@ impl Nginx {
         workers: usize,
         addr: SocketAddr,
         ns: Option<&str>,
+        http2: bool,
     ) -> Result<Nginx, NginxError> {
+        let http2 = if http2 { " http2" } else { "" };
         let prefix = tempfile::Builder::new().prefix("planet-nginx").tempdir()?;
         let p = prefix.path();
         let www = p.join("www");
@@ -148,7 +157,7 @@ http {{
     uwsgi_temp_path {p}/tmp/uwsgi;
     scgi_temp_path {p}/tmp/scgi;
     server {{
-        listen {addr} ssl http2;
+        listen {addr} ssl{http2};
         server_name localhost;
         ssl_certificate {p}/cert.pem;
         ssl_certificate_key {p}/key.pem;

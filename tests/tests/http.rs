@@ -222,3 +222,24 @@ fn converges_from_nginx_through_a_lossy_shaped_tcp_link() {
     sc.close();
     drop(ng);
 }
+
+#[test]
+fn converges_from_a_server_without_http2() {
+    // ALPN offers http/1.1 only: the session falls back to a pool of
+    // HTTP/1.1 connections and still converges to the exact samples.
+    let rt = runtime(2).expect("runtime");
+    if !Path::new(NGINX_BIN).exists() {
+        planet_testkit::skip_or_fail(&format!("{NGINX_BIN} not installed"));
+        return;
+    }
+    let ng = Nginx::start_http1_only(Path::new(NGINX_BIN), small_db()).expect("nginx");
+    let mut sc = connect_http(&rt, &ng);
+    let out = converge(
+        &mut sc,
+        &static_camera(),
+        Duration::from_secs(30),
+        |_, _| {},
+    );
+    assert_exact(&sc, &out);
+    sc.close();
+}
