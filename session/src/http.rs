@@ -125,6 +125,9 @@ pub enum HttpError {
     /// The superblock or header does not decode.
     #[error("bad database file")]
     Format(#[source] planet_core::format::FormatError),
+    /// The HTTP/1.1 connection pool was closed under a request.
+    #[error("the HTTP/1.1 connection pool is closed")]
+    PoolClosed,
 }
 
 /// Opens connections to the URL's server: TCP, then TLS with ALPN.
@@ -285,7 +288,7 @@ impl Http1Pool {
             .free
             .acquire()
             .await
-            .map_err(|_| HttpError::Url("HTTP/1.1 pool closed".into()))?;
+            .map_err(|_| HttpError::PoolClosed)?;
         // With a permit, some slot is free.
         let mut slot = None;
         for s in &self.slots {
@@ -295,7 +298,9 @@ impl Http1Pool {
             }
         }
         let Some(mut slot) = slot else {
-            return Err(HttpError::Url("no free HTTP/1.1 connection".into()));
+            // Unreachable while permits equal slots; fail the request
+            // rather than panic.
+            return Err(HttpError::PoolClosed);
         };
         let mut send = match slot.take() {
             Some(s) if !s.is_closed() => s,
