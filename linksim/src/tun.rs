@@ -1,6 +1,6 @@
 //! The link for kernel TCP (ISSUE #19): a network namespace joined to this
 //! one by two TUN devices, whose IP packets this process moves from one to
-//! the other through the same [`Shaper`] as the UDP relay, so that TCP's
+//! the other through the same shaper (`shaper.rs`) as the UDP relay, so that TCP's
 //! own loss recovery, congestion control and head-of-line blocking are what
 //! a benchmark measures.
 //!
