@@ -33,8 +33,8 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::load::{fly, ClientSpec, Live, Path};
 use crate::server::{
-    connect_many, loadavg, proc_cpu_seconds, proc_rss, raise_nofile_limit, resolve_db, ServerMode,
-    ServerUnderTest,
+    connect_many, load1, loadavg, proc_cpu_seconds, proc_rss, proc_threads, raise_nofile_limit,
+    resolve_db, ServerMode, ServerUnderTest,
 };
 
 /// `planet-bench soak` arguments.
@@ -87,6 +87,8 @@ struct Sample {
     vm_rss: u64,
     anon: u64,
     fds: u64,
+    threads: u64,
+    load1: f64,
     cpu: f64,
     requests: u64,
     bytes: u64,
@@ -247,8 +249,18 @@ pub fn run(args: SoakArgs) -> Result<()> {
     let t0 = Instant::now();
     let cpu0 = proc_cpu_seconds(pid).unwrap_or(0.0);
     println!(
-        "{:>8} {:>10} {:>10} {:>5} {:>9} {:>11} {:>9} {:>6} {:>8}",
-        "t (s)", "VmRSS MiB", "anon MiB", "fds", "CPU %", "requests", "MB", "errors", "sessions"
+        "{:>8} {:>10} {:>10} {:>5} {:>7} {:>9} {:>6} {:>11} {:>9} {:>6} {:>8}",
+        "t (s)",
+        "VmRSS MiB",
+        "anon MiB",
+        "fds",
+        "threads",
+        "CPU %",
+        "load",
+        "requests",
+        "MB",
+        "errors",
+        "sessions"
     );
     let monitor = {
         let (live, churn, stop, samples) =
@@ -273,6 +285,8 @@ pub fn run(args: SoakArgs) -> Result<()> {
                     vm_rss,
                     anon,
                     fds: open_fds(pid).unwrap_or(0),
+                    threads: proc_threads(pid).unwrap_or(0),
+                    load1: load1().unwrap_or(f64::NAN),
                     cpu: cpu - cpu0,
                     requests: live.requests.load(Ordering::Relaxed),
                     bytes: live.bytes.load(Ordering::Relaxed),
@@ -283,12 +297,14 @@ pub fn run(args: SoakArgs) -> Result<()> {
                 let pct = 100.0 * (cpu - last_cpu.1) / (t - last_cpu.0).max(1e-9);
                 last_cpu = (t, cpu);
                 println!(
-                    "{:>8.0} {:>10.1} {:>10.1} {:>5} {:>9.1} {:>11} {:>9.1} {:>6} {:>8}",
+                    "{:>8.0} {:>10.1} {:>10.1} {:>5} {:>7} {:>9.1} {:>6.2} {:>11} {:>9.1} {:>6} {:>8}",
                     s.t,
                     s.vm_rss as f64 / 1048576.0,
                     s.anon as f64 / 1048576.0,
                     s.fds,
+                    s.threads,
                     pct,
+                    s.load1,
                     s.requests,
                     s.bytes as f64 / 1e6,
                     s.errors,
@@ -423,6 +439,7 @@ pub fn run(args: SoakArgs) -> Result<()> {
             "faults": faults,
             "samples": samples.iter().map(|s| serde_json::json!({
                 "t": s.t, "vm_rss": s.vm_rss, "anon": s.anon, "fds": s.fds,
+                "threads": s.threads, "load1": s.load1,
                 "cpu_s": s.cpu, "requests": s.requests, "bytes": s.bytes,
                 "errors": s.errors, "sessions": s.sessions,
             })).collect::<Vec<_>>(),

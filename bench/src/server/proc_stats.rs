@@ -41,6 +41,23 @@ pub fn proc_rss(pid: u32) -> Option<(u64, u64)> {
     Some((field("VmRSS:")?, field("RssAnon:").unwrap_or(0)))
 }
 
+/// Number of threads of `pid` (`Threads:` in `/proc/PID/status`).
+pub fn proc_threads(pid: u32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = s.lines().find(|l| l.starts_with("Threads:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// The 1-minute load average, as a number.
+pub fn load1() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
 /// `pid` and its direct children (e.g. an nginx master and its workers).
 pub fn process_tree(pid: u32) -> Vec<u32> {
     let mut out = vec![pid];
