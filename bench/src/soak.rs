@@ -33,8 +33,8 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::load::{fly, ClientSpec, Live, Path};
 use crate::server::{
-    connect_many, load1, loadavg, proc_cpu_seconds, proc_rss, proc_threads, raise_nofile_limit,
-    resolve_db, ServerMode, ServerUnderTest,
+    connect_many, load1, loadavg, proc_anon_huge, proc_cpu_seconds, proc_rss, proc_threads,
+    raise_nofile_limit, resolve_db, ServerMode, ServerUnderTest,
 };
 
 /// `planet-bench soak` arguments.
@@ -86,6 +86,8 @@ struct Sample {
     t: f64,
     vm_rss: u64,
     anon: u64,
+    /// Of `anon`, in transparent huge pages.
+    huge: u64,
     fds: u64,
     threads: u64,
     load1: f64,
@@ -249,10 +251,11 @@ pub fn run(args: SoakArgs) -> Result<()> {
     let t0 = Instant::now();
     let cpu0 = proc_cpu_seconds(pid).unwrap_or(0.0);
     println!(
-        "{:>8} {:>10} {:>10} {:>5} {:>7} {:>9} {:>6} {:>11} {:>9} {:>6} {:>8}",
+        "{:>8} {:>10} {:>10} {:>9} {:>5} {:>7} {:>9} {:>6} {:>11} {:>9} {:>6} {:>8}",
         "t (s)",
         "VmRSS MiB",
         "anon MiB",
+        "huge MiB",
         "fds",
         "threads",
         "CPU %",
@@ -284,6 +287,7 @@ pub fn run(args: SoakArgs) -> Result<()> {
                     t,
                     vm_rss,
                     anon,
+                    huge: proc_anon_huge(pid).unwrap_or(0),
                     fds: open_fds(pid).unwrap_or(0),
                     threads: proc_threads(pid).unwrap_or(0),
                     load1: load1().unwrap_or(f64::NAN),
@@ -297,10 +301,11 @@ pub fn run(args: SoakArgs) -> Result<()> {
                 let pct = 100.0 * (cpu - last_cpu.1) / (t - last_cpu.0).max(1e-9);
                 last_cpu = (t, cpu);
                 println!(
-                    "{:>8.0} {:>10.1} {:>10.1} {:>5} {:>7} {:>9.1} {:>6.2} {:>11} {:>9.1} {:>6} {:>8}",
+                    "{:>8.0} {:>10.1} {:>10.1} {:>9.1} {:>5} {:>7} {:>9.1} {:>6.2} {:>11} {:>9.1} {:>6} {:>8}",
                     s.t,
                     s.vm_rss as f64 / 1048576.0,
                     s.anon as f64 / 1048576.0,
+                    s.huge as f64 / 1048576.0,
                     s.fds,
                     s.threads,
                     pct,
@@ -438,7 +443,7 @@ pub fn run(args: SoakArgs) -> Result<()> {
             "fds_slope_per_h": fds_h,
             "faults": faults,
             "samples": samples.iter().map(|s| serde_json::json!({
-                "t": s.t, "vm_rss": s.vm_rss, "anon": s.anon, "fds": s.fds,
+                "t": s.t, "vm_rss": s.vm_rss, "anon": s.anon, "anon_huge": s.huge, "fds": s.fds,
                 "threads": s.threads, "load1": s.load1,
                 "cpu_s": s.cpu, "requests": s.requests, "bytes": s.bytes,
                 "errors": s.errors, "sessions": s.sessions,

@@ -41,6 +41,15 @@ pub fn proc_rss(pid: u32) -> Option<(u64, u64)> {
     Some((field("VmRSS:")?, field("RssAnon:").unwrap_or(0)))
 }
 
+/// Anonymous memory of `pid` held in transparent huge pages, bytes
+/// (`AnonHugePages:` in `/proc/PID/smaps_rollup`).
+pub fn proc_anon_huge(pid: u32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).ok()?;
+    let line = s.lines().find(|l| l.starts_with("AnonHugePages:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
 /// Number of threads of `pid` (`Threads:` in `/proc/PID/status`).
 pub fn proc_threads(pid: u32) -> Option<u64> {
     let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
