@@ -66,6 +66,7 @@ enum Command {
 }
 
 fn main() -> Result<()> {
+    planet_core::pages::no_transparent_huge_pages();
     planet_core::pipe::exit_quietly_on_broken_pipe();
     let cli = Cli::parse();
     match cli.command {

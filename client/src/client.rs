@@ -715,21 +715,34 @@ impl Client {
         // children's LOD 1 (thesis §3.3.2), so a record that arrived and let
         // the block split (a neighbour's constraint, or colour that refines
         // below the geometry) is drawn through its children.
-        // The blocks whose LOD 0 samples are drawn, per tree (built only in
-        // frames that have records to account for).
+        // Of the blocks whose records are accounted for (applied now or
+        // earlier and not drawn yet), those whose LOD 0 samples are drawn:
+        // the draw list is scanned against that small set, not hashed
+        // whole (10 000 inserts a frame for a moving eye).
         let mut drawn0: FastSet<(Tree, BlockId)> = FastSet::default();
         if !self.not_drawn.is_empty() || !applied.is_empty() {
+            let asked: FastSet<(Tree, BlockId)> = self
+                .not_drawn
+                .keys()
+                .copied()
+                .chain(applied.iter().map(|(t, b, _, _)| (*t, *b)))
+                .collect();
             let lod0 = |b: BlockId, lod: u8| match lod {
                 0 => Some(b),
                 1 => b.parent(),
                 _ => None,
             };
+            let mut see = |key: (Tree, BlockId)| {
+                if asked.contains(&key) {
+                    drawn0.insert(key);
+                }
+            };
             for d in &draw {
                 if let Some(b) = lod0(d.block, d.lod) {
-                    drawn0.insert((Tree::Elevation, b));
+                    see((Tree::Elevation, b));
                 }
                 if let Some(b) = d.colour.and_then(|c| lod0(c.block, c.lod)) {
-                    drawn0.insert((Tree::Colour, b));
+                    see((Tree::Colour, b));
                 }
             }
         }

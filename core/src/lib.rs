@@ -34,6 +34,7 @@ pub mod datum;
 pub mod format;
 pub mod horizon;
 pub mod lod;
+pub mod pages;
 pub mod pipe;
 
 pub use block::{BlockId, Edge};

@@ -23,25 +23,6 @@ use planet_server::{Server, ServerConfig, TlsSource};
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-/// Turn transparent huge pages off for this process (`PR_SET_THP_DISABLE`),
-/// as database servers with many small allocations do (Redis, MongoDB).
-///
-/// mimalloc asks for huge pages on its arenas (`MADV_HUGEPAGE`), and on a
-/// host whose THP setting is `madvise` or `always`, khugepaged then
-/// may collapse a sparsely used 2 MiB range into one huge page, the rest
-/// filled with zeros, and a huge page is returned only whole. In the
-/// 2-hour soaks the server's resident memory stepped up by 5–10 MiB for
-/// good while other processes ran on the host, and 18 of its 29 MiB of
-/// anonymous memory were huge pages (docs/BENCHMARKS.md "Soak"). With THP
-/// off, the 64 KiB pages that mimalloc purges return to the host.
-fn disable_transparent_huge_pages() {
-    #[cfg(target_os = "linux")]
-    if let Err(e) = rustix::thread::disable_transparent_huge_pages(true) {
-        // Only memory accounting is at stake: go on, and say so.
-        eprintln!("planet-server: cannot turn transparent huge pages off: {e}");
-    }
-}
-
 #[derive(Debug, Parser)]
 #[command(
     name = "planet-server",
@@ -232,7 +213,7 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
 }
 
 fn main() -> std::process::ExitCode {
-    disable_transparent_huge_pages();
+    planet_core::pages::no_transparent_huge_pages();
     planet_core::pipe::exit_quietly_on_broken_pipe();
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -267,6 +267,7 @@ fn init_logging() {
 }
 
 fn main() {
+    planet_core::pages::no_transparent_huge_pages();
     planet_core::pipe::exit_quietly_on_broken_pipe();
     init_logging();
     let cli = Cli::parse();

@@ -33,10 +33,10 @@
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them: decode
 //! pops from the end). There is no further entropy layer.
 
-use super::model::CompactDecoder;
+use super::model::{CompactDecoder, Pow2Uniform};
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
-use constriction::stream::model::{SmallContiguousCategoricalEntropyModel, SmallUniformModel};
+use constriction::stream::model::SmallContiguousCategoricalEntropyModel;
 use constriction::stream::stack::DefaultAnsCoder;
 use constriction::stream::{Decode, Encode};
 use std::sync::OnceLock;
@@ -286,8 +286,7 @@ pub(super) fn rans_encode(
     syms: &[(u32, u8)],
     model: impl Fn(u8) -> &'static SmallContiguousCategoricalEntropyModel,
 ) -> Vec<u32> {
-    let uniform: [SmallUniformModel; 9] =
-        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
+    let uniform: [Pow2Uniform; 9] = std::array::from_fn(|w| Pow2Uniform::new(w as u32));
     let mut coder = DefaultAnsCoder::new();
     let fail = |e| unreachable!("rANS encoding into a Vec: {e:?}");
     for &(z, m) in syms.iter().rev() {
@@ -350,8 +349,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
         }
     }
     // Uniform models of 1..=8 bits, built once per record.
-    let uniform: [SmallUniformModel; 9] =
-        std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1)));
+    let uniform: [Pow2Uniform; 9] = std::array::from_fn(|w| Pow2Uniform::new(w as u32));
     let mut next = |c: usize| -> Result<u32, CodecError> {
         let rans = |e| CodecError::Rans(format!("{e:?}"));
         let b = coder.decode_symbol(m[c]).map_err(rans)?;

@@ -34,12 +34,10 @@
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them).
 
 use super::elevation::{bucket, chunks, open, rans_encode, Quantiser, DIRECT};
-use super::model::CompactDecoder;
+use super::model::{CompactDecoder, Pow2Uniform};
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
-use constriction::stream::model::{
-    EncoderModel, SmallContiguousCategoricalEntropyModel, SmallUniformModel,
-};
+use constriction::stream::model::{EncoderModel, SmallContiguousCategoricalEntropyModel};
 use constriction::stream::stack::DefaultAnsCoder;
 use constriction::stream::Decode;
 use std::sync::OnceLock;
@@ -405,7 +403,7 @@ fn best_scale(hist: &[[u32; SYMBOLS]; CENTRES]) -> u8 {
 struct Decoder {
     coder: DefaultAnsCoder,
     models: [&'static CompactDecoder<SYMBOLS>; CONTEXTS * CENTRES],
-    uniform: [SmallUniformModel; 9],
+    uniform: [Pow2Uniform; 9],
 }
 
 impl Sampler for Decoder {
@@ -437,7 +435,7 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
     let mut dec = Decoder {
         coder,
         models: std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES)),
-        uniform: std::array::from_fn(|w| SmallUniformModel::new(1usize << w.max(1))),
+        uniform: std::array::from_fn(|w| Pow2Uniform::new(w as u32)),
     };
     let quant = Quantiser::new(k);
     let mut q = vec![0i32; side * side];
