@@ -63,6 +63,7 @@
 //!   per direction; the relay's own processing adds microseconds of delay.
 
 mod config;
+mod delivery;
 mod relay;
 mod shaper;
 pub mod tun;

@@ -1,7 +1,6 @@
 //! The UDP relay: sockets, per-client sessions, delivery scheduling.
 
-use std::cmp::Reverse;
-use std::collections::{BinaryHeap, HashMap};
+use std::collections::HashMap;
 use std::io;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
@@ -13,6 +12,7 @@ use tokio::sync::mpsc;
 use tokio::task::AbortHandle;
 
 use crate::config::LinkConfig;
+use crate::delivery::delivery_loop;
 use crate::shaper::{Shaper, Timed, Verdict};
 
 /// A client that sent nothing and received nothing for this long loses its
@@ -181,8 +181,8 @@ impl Link {
             shut_down: AtomicBool::new(false),
         });
         let tasks = vec![
-            tokio::spawn(delivery_loop(inner.clone(), Dir::Up, up_rx)).abort_handle(),
-            tokio::spawn(delivery_loop(inner.clone(), Dir::Down, down_rx)).abort_handle(),
+            tokio::spawn(delivery_loop(up_rx, deliver_to(&inner, Dir::Up))).abort_handle(),
+            tokio::spawn(delivery_loop(down_rx, deliver_to(&inner, Dir::Down))).abort_handle(),
             tokio::spawn(front_loop(inner.clone(), front)).abort_handle(),
             tokio::spawn(reaper_loop(inner.clone())).abort_handle(),
         ];
@@ -359,8 +359,7 @@ impl Inner {
         }
     }
 
-    async fn deliver(&self, dir: Dir, p: Scheduled) {
-        let p = p.item;
+    async fn deliver(&self, dir: Dir, p: Datagram) {
         let d = self.direction(dir);
         d.in_flight.fetch_sub(p.data.len(), Ordering::Relaxed);
         if self.blackhole.load(Ordering::Relaxed) {
@@ -480,37 +479,16 @@ async fn upstream_loop(
 }
 
 /// Delivers one direction's datagrams in order of their delivery time.
-async fn delivery_loop(inner: Arc<Inner>, dir: Dir, mut rx: mpsc::UnboundedReceiver<Scheduled>) {
-    let mut heap: BinaryHeap<Reverse<Scheduled>> = BinaryHeap::new();
-    loop {
-        let now = Instant::now();
-        while heap.peek().is_some_and(|Reverse(p)| p.at <= now) {
-            if let Some(Reverse(p)) = heap.pop() {
-                inner.deliver(dir, p).await;
-            }
-        }
-        let next = heap.peek().map(|Reverse(p)| p.at);
-        tokio::select! {
-            msg = rx.recv() => match msg {
-                Some(p) => {
-                    heap.push(Reverse(p));
-                    while let Ok(p) = rx.try_recv() {
-                        heap.push(Reverse(p));
-                    }
-                }
-                None => return,
-            },
-            _ = sleep_until_opt(next) => {}
-        }
+/// The delivery of one direction: each datagram through [`Inner::deliver`].
+fn deliver_to(inner: &Arc<Inner>, dir: Dir) -> impl FnMut(Datagram) -> BoxedDelivery {
+    let inner = Arc::clone(inner);
+    move |p| {
+        let inner = Arc::clone(&inner);
+        Box::pin(async move { inner.deliver(dir, p).await })
     }
 }
 
-async fn sleep_until_opt(at: Option<Instant>) {
-    match at {
-        Some(at) => tokio::time::sleep_until(at.into()).await,
-        None => std::future::pending().await,
-    }
-}
+type BoxedDelivery = std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>;
 
 /// Drops sessions idle for longer than [`SESSION_IDLE_TIMEOUT`].
 async fn reaper_loop(inner: Arc<Inner>) {

@@ -23,8 +23,6 @@
 //! packets, so that much is subtracted first and every packet counts its
 //! real size, headers included, against the bandwidth.
 
-use std::cmp::Reverse;
-use std::collections::BinaryHeap;
 use std::io;
 use std::net::Ipv4Addr;
 use std::process::Command;
@@ -37,6 +35,7 @@ use tokio::task::AbortHandle;
 use tokio_tun::Tun;
 
 use crate::config::{LinkConfig, PER_PACKET_OVERHEAD};
+use crate::delivery::delivery_loop;
 use crate::shaper::{Shaper, Timed, Verdict};
 
 /// Largest IP packet read from a TUN device (its MTU is 1 500).
@@ -147,8 +146,15 @@ impl TcpLink {
                 false,
             ))
             .abort_handle(),
-            tokio::spawn(deliver_loop(far, up_rx, Arc::clone(c), true)).abort_handle(),
-            tokio::spawn(deliver_loop(near, down_rx, Arc::clone(c), false)).abort_handle(),
+            tokio::spawn(delivery_loop(up_rx, move |p| write(Arc::clone(&far), p))).abort_handle(),
+            tokio::spawn(delivery_loop(down_rx, {
+                let c = Arc::clone(c);
+                move |p: Vec<u8>| {
+                    c.bytes_down.fetch_add(p.len() as u64, Ordering::Relaxed);
+                    write(Arc::clone(&near), p)
+                }
+            }))
+            .abort_handle(),
         ];
         Ok(link)
     }
@@ -277,43 +283,9 @@ async fn read_loop(
     }
 }
 
-async fn deliver_loop(
-    to: Arc<Tun>,
-    mut rx: mpsc::UnboundedReceiver<Scheduled>,
-    c: Arc<Counters>,
-    up: bool,
-) {
-    let mut heap: BinaryHeap<Reverse<Scheduled>> = BinaryHeap::new();
-    loop {
-        let now = Instant::now();
-        while heap.peek().is_some_and(|Reverse(p)| p.at <= now) {
-            if let Some(Reverse(p)) = heap.pop() {
-                if !up {
-                    c.bytes_down
-                        .fetch_add(p.item.len() as u64, Ordering::Relaxed);
-                }
-                if let Err(e) = to.send(&p.item).await {
-                    tracing::debug!(error = %e, "linksim: TUN write failed");
-                }
-            }
-        }
-        let next = heap.peek().map(|Reverse(p)| p.at);
-        tokio::select! {
-            msg = rx.recv() => match msg {
-                Some(p) => {
-                    heap.push(Reverse(p));
-                    while let Ok(p) = rx.try_recv() {
-                        heap.push(Reverse(p));
-                    }
-                }
-                None => return,
-            },
-            _ = async {
-                match next {
-                    Some(at) => tokio::time::sleep_until(at.into()).await,
-                    None => std::future::pending().await,
-                }
-            } => {}
-        }
+/// Write one packet out of a TUN device; a failed write is a lost packet.
+async fn write(to: Arc<Tun>, packet: Vec<u8>) {
+    if let Err(e) = to.send(&packet).await {
+        tracing::debug!(error = %e, "linksim: TUN write failed");
     }
 }

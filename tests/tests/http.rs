@@ -145,18 +145,7 @@ fn a_corrupt_record_is_detected_and_never_drawn() {
             else {
                 continue;
             };
-            let t = truth.get(&d.block).expect("block in database");
-            for j in (0..side).step_by(2 - usize::from(d.lod == 0)) {
-                for k in (0..side).step_by(2 - usize::from(d.lod == 0)) {
-                    assert_eq!(
-                        grid[j * side + k],
-                        t[j * side + k],
-                        "{:?} at LOD {}",
-                        d.block,
-                        d.lod
-                    );
-                }
-            }
+            assert_drawn_samples_exact(d, grid, truth, side);
         }
     }
     let err = sc.client.last_error().unwrap_or_default().to_string();

@@ -5,7 +5,7 @@
 use planet_client::refinement::KEEP_LOD0;
 use planet_client::trajectory::{camera_from_keyframe, Keyframe};
 use planet_client::tree::Samples;
-use planet_client::{Camera, ClientConfig, FrameOutput};
+use planet_client::{Camera, ClientConfig, DrawBlock, FrameOutput};
 use planet_core::{BlockId, Datum};
 use planet_preprocess::db::Sampler;
 use planet_session::streaming::StreamingClient;
@@ -126,6 +126,29 @@ pub fn converge(
 /// client's default tolerance, or nothing finer exists), at no finer a LOD
 /// than it needs, and its samples are exactly the database's (all samples
 /// at LOD 0, the even ones at LOD 1).
+/// The samples a drawn block shows (every sample at LOD 0, the even ones
+/// at LOD 1) are the database's, exactly.
+pub fn assert_drawn_samples_exact(
+    d: &DrawBlock,
+    grid: &[i16],
+    truth: &HashMap<BlockId, Vec<i16>>,
+    side: usize,
+) {
+    let t = truth.get(&d.block).expect("block in database");
+    let step = if d.lod == 0 { 1 } else { 2 };
+    for j in (0..side).step_by(step) {
+        for i in (0..side).step_by(step) {
+            assert_eq!(
+                grid[j * side + i],
+                t[j * side + i],
+                "{:?} sample ({i},{j}) at LOD {}",
+                d.block,
+                d.lod
+            );
+        }
+    }
+}
+
 pub fn assert_exact(sc: &StreamingClient, out: &FrameOutput) {
     let truth = truth();
     let et = sc.client.tree().elevation();
@@ -159,20 +182,7 @@ pub fn assert_exact(sc: &StreamingClient, out: &FrameOutput) {
         let Some(Samples::Elevation(grid)) = &node.samples else {
             panic!("leaf without samples")
         };
-        let t = truth.get(&d.block).expect("block in database");
-        for j in 0..side {
-            for i in 0..side {
-                if d.lod == 0 || (i % 2 == 0 && j % 2 == 0) {
-                    assert_eq!(
-                        grid[j * side + i],
-                        t[j * side + i],
-                        "{:?} sample ({i},{j}) at LOD {}",
-                        d.block,
-                        d.lod
-                    );
-                }
-            }
-        }
+        assert_drawn_samples_exact(d, grid, truth, side);
         lod0 += usize::from(d.lod == 0);
         // A block below a root drawn at LOD 1 shows its parent's LOD 0
         // record (a split block's full grid is its children's LOD 1): since
