@@ -15,6 +15,11 @@
 //! TCP in a network namespace, shaped packet by packet by the same shaper
 //! and seeds as the UDP relay; `planet_linksim::TcpLink`). Only the
 //! transport differs: same client, policies, database, trajectory and link.
+//! Each sender runs its own default congestion control: BBR in
+//! planet-server (`--congestion`), CUBIC, the Linux kernel's default, for
+//! nginx's TCP (`--tcp-congestion`, set on the namespace's route, so the
+//! host's own default does not leak in); `summary.json` names it
+//! (`congestion`).
 
 use crate::plot;
 use crate::thread_cpu;
@@ -128,6 +133,13 @@ pub struct FlightArgs {
     /// nginx binary for `--transport http2`.
     #[arg(long, default_value = planet_testkit::nginx::NGINX_BIN)]
     pub nginx_bin: PathBuf,
+    /// TCP congestion control of nginx's connections for `--transport
+    /// http2`: `cubic`, the Linux kernel's default since 2.6.19
+    /// (`CONFIG_DEFAULT_TCP_CONG`), which a stock nginx host runs; `bbr`,
+    /// which some CDNs run; or `system`, whatever this host's default is
+    /// (this project's VM defaults to BBR).
+    #[arg(long, default_value = "cubic")]
+    pub tcp_congestion: String,
 }
 
 /// How the client reaches the database.
@@ -183,6 +195,9 @@ pub struct Row {
 pub struct Summary {
     pub label: String,
     pub transport: Transport,
+    /// The sender's congestion control (server's for QUIC, TCP's for
+    /// HTTP/2).
+    pub congestion: String,
     /// The database's file stem.
     pub db: String,
     pub policy: Policy,
@@ -253,6 +268,9 @@ struct JsonSummary<'a> {
     db: &'a str,
     link: &'a str,
     transport: Transport,
+    /// The sender's congestion control: planet-server's for QUIC, nginx's
+    /// TCP for HTTP/2.
+    congestion: &'a str,
     policy: &'a str,
     trajectory: &'a str,
     max_sse_px: f64,
@@ -369,6 +387,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
             db: &s.db,
             link: &s.label,
             transport: s.transport,
+            congestion: &s.congestion,
             policy: s.policy.name(),
             trajectory: &a.trajectory,
             max_sse_px: a.max_sse,
@@ -506,6 +525,7 @@ fn run_link(
     eprintln!("== {label} / {transport} / {policy}: {}", a.db.display());
     let rt = runtime(2)?;
     let bandwidth = cfg.bandwidth_bps;
+    let sender_congestion: String;
     let path = match transport {
         Transport::Quic => {
             let congestion = a
@@ -514,6 +534,7 @@ fn run_link(
                 .map(str::parse::<planet_server::Congestion>)
                 .transpose()?;
             let server = LocalServer::start_with(rt.handle(), &a.db, congestion)?;
+            sender_congestion = congestion.unwrap_or_default().name().to_string();
             let link = rt.block_on(Link::start(
                 server.addr(),
                 cfg.clone().with_seed(1),
@@ -525,6 +546,10 @@ fn run_link(
             let link = rt
                 .block_on(TcpLink::start(cfg.clone().with_seed(1), cfg.with_seed(2)))
                 .context("the TCP link (needs root, /dev/net/tun and iproute2's ip)")?;
+            if a.tcp_congestion != "system" {
+                link.set_tcp_congestion(&a.tcp_congestion)?;
+            }
+            sender_congestion = link.tcp_congestion()?;
             let nginx = planet_testkit::nginx::Nginx::start_in_namespace(
                 &a.nginx_bin,
                 &a.db,
@@ -739,6 +764,7 @@ fn run_link(
         Summary {
             label,
             transport,
+            congestion: sender_congestion,
             db: db_name,
             policy,
             error_integral,
@@ -847,7 +873,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
-            s.transport,
+            format_args!("{} ({})", s.transport, s.congestion),
             s.policy,
             s.error_integral,
             s.max_sse_integral,

@@ -71,6 +71,8 @@ struct Counters {
 /// A shaped link between this namespace and a new one ([module docs](self)).
 pub struct TcpLink {
     ns: String,
+    /// The namespace's TUN device.
+    far_dev: String,
     client_ip: Ipv4Addr,
     server_ip: Ipv4Addr,
     counters: Arc<Counters>,
@@ -104,6 +106,7 @@ impl TcpLink {
         let ns = format!("planet-{slot}-{}", std::process::id());
         ip(&["netns", "add", &ns])?;
         let mut link = TcpLink {
+            far_dev: format!("pls{slot}"),
             ns,
             client_ip,
             server_ip,
@@ -181,6 +184,55 @@ impl TcpLink {
         c
     }
 
+    /// The TCP congestion control of the namespace's connections to this
+    /// side from now on (the servers' sending side): e.g. `cubic`, Linux's
+    /// default, or `bbr`. Set on the namespace's route back
+    /// (`ip route … congctl`): a namespace other than the host's may not
+    /// change its default to an algorithm the host restricts, and starts
+    /// with the host's default. Fails on a name the kernel does not offer
+    /// (`net.ipv4.tcp_available_congestion_control`).
+    pub fn set_tcp_congestion(&self, algorithm: &str) -> io::Result<()> {
+        let (client, server) = (self.client_ip.to_string(), self.server_ip.to_string());
+        ip(&[
+            "-n",
+            &self.ns,
+            "route",
+            "replace",
+            &format!("{client}/32"),
+            "dev",
+            &self.far_dev,
+            "src",
+            &server,
+            "congctl",
+            algorithm,
+        ])
+        .map_err(|e| {
+            io::Error::new(
+                e.kind(),
+                format!("TCP congestion control {algorithm:?} on the link's route: {e}"),
+            )
+        })
+    }
+
+    /// The TCP congestion control the namespace's connections to this side
+    /// get: the route's (`congctl`), else the namespace's default.
+    pub fn tcp_congestion(&self) -> io::Result<String> {
+        let client = self.client_ip.to_string();
+        let out = Command::new("ip")
+            .args(["-n", &self.ns, "route", "show", &format!("{client}/32")])
+            .output()?;
+        let route = String::from_utf8_lossy(&out.stdout);
+        let mut words = route.split_whitespace();
+        if words.any(|w| w == "congctl") {
+            if let Some(a) = words.next() {
+                return Ok(a.to_string());
+            }
+        }
+        in_namespace(&self.ns, || {
+            Ok(std::fs::read_to_string(TCP_CONGESTION)?.trim().to_string())
+        })
+    }
+
     /// The counters so far.
     pub fn stats(&self) -> TcpLinkStats {
         let c = &self.counters;
@@ -205,36 +257,48 @@ impl Drop for TcpLink {
     }
 }
 
-/// The namespace's TUN device, created by a thread that joined the
-/// namespace (a device belongs to the namespace it was created in; the
-/// thread's fd keeps working after the thread is gone).
-fn far_tun(ns: &str, slot: u32, addr: Ipv4Addr, peer: Ipv4Addr) -> io::Result<Tun> {
+/// Runs `f` on a thread that joined namespace `ns` (network settings under
+/// `/proc/sys/net` and devices created there belong to that namespace),
+/// inside the current tokio runtime's context.
+fn in_namespace<T: Send>(ns: &str, f: impl FnOnce() -> io::Result<T> + Send) -> io::Result<T> {
     let path = format!("/run/netns/{ns}");
-    let handle = tokio::runtime::Handle::current();
-    let name = format!("pls{slot}");
+    let handle = tokio::runtime::Handle::try_current().ok();
     std::thread::scope(|s| {
         s.spawn(|| {
-            let f = std::fs::File::open(&path)?;
+            let file = std::fs::File::open(&path)?;
             rustix::thread::move_into_link_name_space(
-                std::os::fd::AsFd::as_fd(&f),
+                std::os::fd::AsFd::as_fd(&file),
                 Some(rustix::thread::LinkNameSpaceType::Network),
             )?;
-            let _rt = handle.enter();
-            Tun::builder()
-                .name(&name)
-                .address(addr)
-                .destination(peer)
-                .netmask(Ipv4Addr::new(255, 255, 255, 255))
-                .up()
-                .build()
-                .map_err(io::Error::other)?
-                .pop()
-                .ok_or_else(|| io::Error::other("no TUN queue"))
+            let _rt = handle.as_ref().map(tokio::runtime::Handle::enter);
+            f()
         })
         .join()
         .map_err(|_| io::Error::other("namespace thread panicked"))?
     })
 }
+
+/// The namespace's TUN device, created by a thread that joined the
+/// namespace (a device belongs to the namespace it was created in; the
+/// thread's fd keeps working after the thread is gone).
+fn far_tun(ns: &str, slot: u32, addr: Ipv4Addr, peer: Ipv4Addr) -> io::Result<Tun> {
+    let name = format!("pls{slot}");
+    in_namespace(ns, || {
+        Tun::builder()
+            .name(&name)
+            .address(addr)
+            .destination(peer)
+            .netmask(Ipv4Addr::new(255, 255, 255, 255))
+            .up()
+            .build()
+            .map_err(io::Error::other)?
+            .pop()
+            .ok_or_else(|| io::Error::other("no TUN queue"))
+    })
+}
+
+/// The TCP congestion control setting of a namespace.
+const TCP_CONGESTION: &str = "/proc/sys/net/ipv4/tcp_congestion_control";
 
 /// An IP packet and when it leaves the link.
 type Scheduled = Timed<Vec<u8>>;

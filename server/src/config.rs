@@ -235,6 +235,23 @@ pub enum Congestion {
     Bbr,
 }
 
+impl Default for Congestion {
+    /// BBR: the server's default (docs/BENCHMARKS.md "Congestion control").
+    fn default() -> Self {
+        Congestion::Bbr
+    }
+}
+
+impl Congestion {
+    /// The name in the configuration file.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Congestion::Cubic => "cubic",
+            Congestion::Bbr => "bbr",
+        }
+    }
+}
+
 impl std::str::FromStr for Congestion {
     type Err = ConfigError;
     fn from_str(s: &str) -> Result<Self, ConfigError> {
@@ -490,7 +507,7 @@ impl ServerConfig {
             max_rate_wait: Duration::from_secs(2),
             max_udp_payload: DEFAULT_MAX_UDP_PAYLOAD,
             initial_window: DEFAULT_INITIAL_WINDOW,
-            congestion: Congestion::Bbr,
+            congestion: Congestion::default(),
             zero_rtt: true,
             initial_rtt_ms: DEFAULT_INITIAL_RTT_MS,
             handshake_timeout: Duration::from_millis(u64::from(DEFAULT_HANDSHAKE_TIMEOUT_MS)),

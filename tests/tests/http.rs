@@ -180,6 +180,16 @@ fn converges_from_nginx_through_a_lossy_shaped_tcp_link() {
             return;
         }
     };
+    // The namespace's TCP congestion control is its own: CUBIC (Linux's
+    // default) for nginx here, whatever the host runs, which stays as it
+    // was; a name the kernel does not offer is an error.
+    let host_cc = "/proc/sys/net/ipv4/tcp_congestion_control";
+    let host = std::fs::read_to_string(host_cc).expect("host congestion control");
+    link.set_tcp_congestion("cubic")
+        .expect("cubic in the namespace");
+    assert_eq!(link.tcp_congestion().expect("read back"), "cubic");
+    assert!(link.set_tcp_congestion("no-such-control").is_err());
+    assert_eq!(std::fs::read_to_string(host_cc).expect("host"), host);
     let ng = Nginx::start_in_namespace(
         Path::new(NGINX_BIN),
         small_db(),
@@ -193,6 +203,18 @@ fn converges_from_nginx_through_a_lossy_shaped_tcp_link() {
     let camera = static_camera();
     let out = converge(&mut sc, &camera, Duration::from_secs(60), |_, _| {});
     assert_exact(&sc, &out);
+    // nginx's connection to the client runs CUBIC (`ss` inside the
+    // namespace, while the HTTP/2 connection is still open).
+    let ss = link
+        .command("ss")
+        .args(["-tin", "state", "established"])
+        .output()
+        .expect("ss");
+    let ss = String::from_utf8_lossy(&ss.stdout);
+    assert!(
+        ss.contains(" cubic ") && !ss.contains(" bbr "),
+        "nginx's connections: {ss}"
+    );
     let stats = link.stats();
     eprintln!(
         "converged in {:?} through the TCP link: {stats:?}, counters {:?}",
