@@ -115,17 +115,10 @@ impl TcpLink {
         };
         // From here on, Drop deletes the namespace on any error.
         ip(&["netns", "exec", &link.ns, "ip", "link", "set", "lo", "up"])?;
-        let near = Tun::builder()
-            .name(&format!("plc{slot}"))
-            .address(client_ip)
-            .destination(server_ip)
-            .netmask(Ipv4Addr::new(255, 255, 255, 255))
-            .up()
-            .build()
-            .map_err(io::Error::other)?
-            .pop()
-            .ok_or_else(|| io::Error::other("no TUN queue"))?;
-        let far = far_tun(&link.ns, slot, server_ip, client_ip)?;
+        let near = point_to_point(&format!("plc{slot}"), client_ip, server_ip)?;
+        let far = in_namespace(&link.ns, || {
+            point_to_point(&link.far_dev, server_ip, client_ip)
+        })?;
         let (near, far) = (Arc::new(near), Arc::new(far));
         let (up_tx, up_rx) = mpsc::unbounded_channel();
         let (down_tx, down_rx) = mpsc::unbounded_channel();
@@ -278,23 +271,22 @@ fn in_namespace<T: Send>(ns: &str, f: impl FnOnce() -> io::Result<T> + Send) -> 
     })
 }
 
-/// The namespace's TUN device, created by a thread that joined the
-/// namespace (a device belongs to the namespace it was created in; the
-/// thread's fd keeps working after the thread is gone).
-fn far_tun(ns: &str, slot: u32, addr: Ipv4Addr, peer: Ipv4Addr) -> io::Result<Tun> {
-    let name = format!("pls{slot}");
-    in_namespace(ns, || {
-        Tun::builder()
-            .name(&name)
-            .address(addr)
-            .destination(peer)
-            .netmask(Ipv4Addr::new(255, 255, 255, 255))
-            .up()
-            .build()
-            .map_err(io::Error::other)?
-            .pop()
-            .ok_or_else(|| io::Error::other("no TUN queue"))
-    })
+/// A TUN device `name` of address `addr` with a point-to-point route to
+/// `peer`, in the calling thread's namespace (the namespace's device is
+/// made by a thread that joined it, [`in_namespace`]: a device belongs to
+/// the namespace it was created in, and its fd keeps working after the
+/// thread is gone).
+fn point_to_point(name: &str, addr: Ipv4Addr, peer: Ipv4Addr) -> io::Result<Tun> {
+    Tun::builder()
+        .name(name)
+        .address(addr)
+        .destination(peer)
+        .netmask(Ipv4Addr::new(255, 255, 255, 255))
+        .up()
+        .build()
+        .map_err(io::Error::other)?
+        .pop()
+        .ok_or_else(|| io::Error::other("no TUN queue"))
 }
 
 /// The TCP congestion control setting of a namespace.
