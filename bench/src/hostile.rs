@@ -109,6 +109,7 @@ impl Drop for Srv {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        crate::children::unregister(self.child.id());
     }
 }
 

@@ -17,6 +17,7 @@
 // (rustix), and with them this opt-out of the workspace `unsafe_code = "deny"`.
 #![allow(unsafe_code)]
 
+mod children;
 mod flight;
 mod hostile;
 mod load;
@@ -68,6 +69,7 @@ enum Command {
 fn main() -> Result<()> {
     planet_core::pages::no_transparent_huge_pages();
     planet_core::pipe::exit_quietly_on_broken_pipe();
+    children::stop_with_signals();
     let cli = Cli::parse();
     match cli.command {
         Command::Flight(a) => flight::run(a),

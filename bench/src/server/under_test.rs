@@ -126,6 +126,7 @@ impl ServerUnderTest {
                     }
                 }
             }
+            crate::children::unregister(c.id());
         }
         if let Some((rt, h)) = self.in_process.take() {
             rt.block_on(h.shutdown());
@@ -172,6 +173,7 @@ pub fn spawn_server(
         .stderr(Stdio::inherit())
         .spawn()
         .with_context(|| format!("cannot start {}", bin.display()))?;
+    crate::children::register(child.id());
     let stdout = child.stdout.take().context("no stdout")?;
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
@@ -182,28 +184,42 @@ pub fn spawn_server(
             let _ = tx.send(line);
         }
     });
-    let (mut addr, mut metrics, mut fingerprint) = (None, None, None);
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while addr.is_none() || fingerprint.is_none() || (with_metrics && metrics.is_none()) {
-        let left = deadline.saturating_duration_since(Instant::now());
-        let Ok(line) = rx.recv_timeout(left) else {
+    let read = || -> Result<(SocketAddr, String, Option<SocketAddr>)> {
+        let (mut addr, mut metrics, mut fingerprint) = (None, None, None);
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while addr.is_none() || fingerprint.is_none() || (with_metrics && metrics.is_none()) {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let Ok(line) = rx.recv_timeout(left) else {
+                bail!("{} did not print its addresses", bin.display());
+            };
+            if let Some(f) = line.strip_prefix("cert-sha256 ") {
+                fingerprint = Some(f.trim().to_string());
+            } else if let Some(a) = line.strip_prefix("listening ") {
+                addr = Some(a.trim().parse::<SocketAddr>()?);
+            } else if let Some(a) = line.strip_prefix("metrics ") {
+                metrics = Some(a.trim().parse::<SocketAddr>()?);
+            }
+        }
+        Ok((
+            addr.context("address")?,
+            fingerprint.context("fingerprint")?,
+            metrics,
+        ))
+    };
+    match read() {
+        Ok((addr, fingerprint, metrics)) => Ok(Spawned {
+            child,
+            addr,
+            fingerprint,
+            metrics,
+        }),
+        Err(e) => {
             let _ = child.kill();
-            bail!("{} did not print its addresses", bin.display());
-        };
-        if let Some(f) = line.strip_prefix("cert-sha256 ") {
-            fingerprint = Some(f.trim().to_string());
-        } else if let Some(a) = line.strip_prefix("listening ") {
-            addr = Some(a.trim().parse::<SocketAddr>()?);
-        } else if let Some(a) = line.strip_prefix("metrics ") {
-            metrics = Some(a.trim().parse::<SocketAddr>()?);
+            let _ = child.wait();
+            crate::children::unregister(child.id());
+            Err(e)
         }
     }
-    Ok(Spawned {
-        child,
-        addr: addr.context("address")?,
-        fingerprint: fingerprint.context("fingerprint")?,
-        metrics,
-    })
 }
 
 /// `planet-server` next to the current executable (target/release when run
