@@ -111,10 +111,17 @@ pub fn install_crypto_provider() {
     let _ = rustls::crypto::ring::default_provider().install_default();
 }
 
-/// Resumable sessions kept per server (two tickets per connection; about
-/// 300 bytes each). Older ones are evicted: their clients do a full
-/// handshake.
+/// Resumable sessions kept per server: one ticket per connection
+/// ([`TICKETS_PER_CONNECTION`]), about 450 bytes each in the 2-hour soak
+/// (docs/BENCHMARKS.md "Soak"), so at most about 3.5 MiB. Older ones are
+/// evicted: their clients do a full handshake.
 pub const SESSION_CACHE_SIZE: usize = 8192;
+
+/// Session tickets sent after each handshake. rustls sends 2 by default, for
+/// clients that open parallel connections; a planet client holds one
+/// connection and gets a fresh ticket each time it resumes, so one ticket
+/// each lets the same cache remember twice as many clients.
+pub const TICKETS_PER_CONNECTION: usize = 1;
 
 /// The rustls server configuration: ring, TLS 1.3, ALPN `planet/1`, stateful
 /// single-use session tickets, early data (0-RTT) if `zero_rtt`.
@@ -131,6 +138,7 @@ pub fn rustls_server_config(
         .map_err(TlsError::Config)?;
     cfg.alpn_protocols = vec![planet_protocol::ALPN.to_vec()];
     cfg.session_storage = rustls::server::ServerSessionMemoryCache::new(SESSION_CACHE_SIZE);
+    cfg.send_tls13_tickets = TICKETS_PER_CONNECTION;
     // QUIC allows only 0 or u32::MAX (RFC 9001 §4.6.1).
     cfg.max_early_data_size = if zero_rtt { u32::MAX } else { 0 };
     Ok(cfg)
