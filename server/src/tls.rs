@@ -111,17 +111,18 @@ pub fn install_crypto_provider() {
     let _ = rustls::crypto::ring::default_provider().install_default();
 }
 
-/// Resumable sessions kept per server: one ticket per connection
-/// ([`TICKETS_PER_CONNECTION`]), about 450 bytes each in the 2-hour soak
-/// (docs/BENCHMARKS.md "Soak"), so at most about 3.5 MiB. Older ones are
-/// evicted: their clients do a full handshake.
+/// Resumable sessions kept per server: stateful tickets, about 450 bytes
+/// each in the 2-hour soak (docs/BENCHMARKS.md "Soak"), so at most about
+/// 3.5 MiB. Older ones are evicted: their clients do a full handshake.
 pub const SESSION_CACHE_SIZE: usize = 8192;
 
-/// Session tickets sent after each handshake. rustls sends 2 by default, for
-/// clients that open parallel connections; a planet client holds one
-/// connection and gets a fresh ticket each time it resumes, so one ticket
-/// each lets the same cache remember twice as many clients.
-pub const TICKETS_PER_CONNECTION: usize = 1;
+/// Session tickets sent after each handshake: rustls's default of 2, kept
+/// on purpose. A client spends a ticket on every connection attempt, even
+/// one that never reaches the server, so after a dropped link the second
+/// ticket is what lets a reconnect that follows a failed attempt still
+/// send its Hello in 0-RTT (`server` session_reconnects_after_server_restart
+/// fails with 1).
+pub const TICKETS_PER_CONNECTION: usize = 2;
 
 /// The rustls server configuration: ring, TLS 1.3, ALPN `planet/1`, stateful
 /// single-use session tickets, early data (0-RTT) if `zero_rtt`.
