@@ -68,16 +68,20 @@ pub(super) struct Quantiser {
     offset: i32,
     /// `⌊2⁴⁰/s⌋ + 1`.
     inverse: u64,
+    /// `offset / s`.
+    base: i32,
 }
 
 impl Quantiser {
     pub(super) fn new(k: u16) -> Quantiser {
         let (k, s) = (k as i32, 2 * k as i32 + 1);
+        let base = (32_768 + s - 1) / s;
         Quantiser {
             k,
             s,
-            offset: s * ((32_768 + s - 1) / s),
+            offset: s * base,
             inverse: (1u64 << 40) / s as u64 + 1,
+            base,
         }
     }
 
@@ -87,7 +91,7 @@ impl Quantiser {
     #[inline(always)]
     pub(super) fn index(&self, v: i16) -> i32 {
         let n = (v as i32 + self.k + self.offset) as u64;
-        ((n * self.inverse) >> 40) as i32 - self.offset / self.s
+        ((n * self.inverse) >> 40) as i32 - self.base
     }
 
     /// The stored value of an index, clamped to `i16`.

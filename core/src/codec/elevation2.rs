@@ -123,7 +123,7 @@ fn encoder_model(scale: u8, centre: usize) -> &'static CostedModel {
     })
 }
 
-/// The decoder model of `(σ, centre)` (330 bytes), built on first use from
+/// The decoder model of `(σ, centre)` (1152 bytes), built on first use from
 /// the encoder's.
 fn decoder_model(scale: u8, centre: usize) -> &'static CompactDecoder<SYMBOLS> {
     static MODELS: [[OnceLock<CompactDecoder<SYMBOLS>>; CENTRES]; 256] =
@@ -186,8 +186,10 @@ struct Grids<'a> {
 impl Grids<'_> {
     /// Code one sample: `p32` is its fixed-point prediction, `act` its
     /// activity. The index `p₀ ± unzigzag(z)` must be in the range.
+    /// `KEEP`: record its residual and prediction error (a midpoint's,
+    /// which the samples after it read; a cell centre's are never read).
     #[inline(always)]
-    fn put(
+    fn put<const KEEP: bool>(
         &mut self,
         code: &mut impl Sampler,
         at: usize,
@@ -197,38 +199,39 @@ impl Grids<'_> {
         let (lo, hi) = self.range;
         let p = pred(p32, act, lo, hi);
         let z = code.sample(p, self.q[at])?;
-        let r = -unzigzag32(z);
-        let v = p.p0 as i64 + if p.flip { -(r as i64) } else { r as i64 };
-        if v < lo as i64 || v > hi as i64 {
+        // |r| < 2¹⁶ for every symbol (`MAX_LEN`) and p₀ is in the i16
+        // index range, so this cannot overflow.
+        let r = unzigzag32(z);
+        let v = if p.flip { p.p0 + r } else { p.p0 - r };
+        if v < lo || v > hi {
             return Err(CodecError::Rans(format!(
                 "sample {at} decodes outside the index range"
             )));
         }
-        self.q[at] = v as i32;
-        self.zs[at] = z;
-        self.es[at] = ((v as i32) << FRAC_BITS) - p32;
+        self.q[at] = v;
+        if KEEP {
+            self.zs[at] = z;
+            self.es[at] = (v << FRAC_BITS) - p32;
+        }
         Ok(())
     }
 
-    /// An edge midpoint `(i, j)`.
+    /// An edge midpoint `(i, j)`: between LOD 1 samples along `i` on even
+    /// rows, along `j` on odd rows (`ALONG_J`); `CUBIC`: three LOD 1
+    /// samples on either side (else the mean of the two nearest).
     #[inline(always)]
-    fn midpoint(
+    fn midpoint<const ALONG_J: bool, const CUBIC: bool>(
         &mut self,
         code: &mut impl Sampler,
         (i, j): (usize, usize),
     ) -> Result<(), CodecError> {
-        let (side, w) = (self.side, self.side - 1);
+        let side = self.side;
         let (q, zs) = (&*self.q, &*self.zs);
         let at = j * side + i;
-        // Along i between LOD 1 samples on even rows, along j on odd rows.
-        let (step, t) = if j.is_multiple_of(2) {
-            (1, i)
-        } else {
-            (side, j)
-        };
+        let step = if ALONG_J { side } else { 1 };
         let (b, c) = (q[at - step], q[at + step]);
         let slope = b.abs_diff(c);
-        let (p32, act) = if t >= 3 && t + 3 <= w {
+        let (p32, act) = if CUBIC {
             let (a, d) = (q[at - 3 * step], q[at + 3 * step]);
             (
                 2 * cubic(a, b, c, d),
@@ -240,22 +243,23 @@ impl Grids<'_> {
         // The residuals of the same kind of midpoint before it on its row
         // and two rows up.
         let near = if i >= 2 { zs[at - 2] } else { 0 } + if j >= 2 { zs[at - 2 * side] } else { 0 };
-        self.put(code, at, p32, act.saturating_add(near))
+        self.put::<true>(code, at, p32, act.saturating_add(near))
     }
 
-    /// A cell centre `(i, j)`.
+    /// A cell centre `(i, j)`; `CUBIC`: three samples on either side in
+    /// both directions (else the mean of the four nearest).
     #[inline(always)]
-    fn centre(
+    fn centre<const CUBIC: bool>(
         &mut self,
         code: &mut impl Sampler,
         (i, j): (usize, usize),
     ) -> Result<(), CodecError> {
-        let (side, w) = (self.side, self.side - 1);
+        let side = self.side;
         let (q, zs, es) = (&*self.q, &*self.zs, &*self.es);
         let at = j * side + i;
         let (l, r, u, d) = (q[at - 1], q[at + 1], q[at - side], q[at + side]);
         let slope = l.abs_diff(r).max(u.abs_diff(d));
-        let (p32, act) = if i >= 3 && i + 3 <= w && j >= 3 && j + 3 <= w {
+        let (p32, act) = if CUBIC {
             let cx = cubic(q[at - 3], l, r, q[at + 3]);
             let cy = cubic(q[at - 3 * side], u, d, q[at + 3 * side]);
             (cx + cy, (cx.abs_diff(cy) >> 5) + (slope >> 3))
@@ -265,30 +269,49 @@ impl Grids<'_> {
         let near = (zs[at - 1] + zs[at + 1] + zs[at - side] + zs[at + side]) >> 1;
         // Half the mean error of the four midpoints' own predictions.
         let p32 = p32 + ((es[at - 1] + es[at + 1] + es[at - side] + es[at + side]) >> 3);
-        self.put(code, at, p32, act.saturating_add(near))
+        self.put::<false>(code, at, p32, act.saturating_add(near))
     }
-}
-
-/// The new columns of row `j`: odd on even rows, even on odd rows.
-fn columns(side: usize, j: usize) -> std::iter::StepBy<std::ops::Range<usize>> {
-    (j.is_multiple_of(2) as usize..side).step_by(2)
 }
 
 /// Walk the new samples of a `(w+1)²` index grid in coding order (pass 1,
 /// edge midpoints row-major; pass 2, cell centres row-major), each
 /// predicted from the indices before it. `code` gets the prediction and
 /// the grid's index there (the source's when encoding) and returns the
-/// zig-zagged residual.
+/// zig-zagged residual. The loops are split where the predictor changes
+/// (the cubic needs three LOD 1 samples on either side), so that no sample
+/// tests which case it is.
 fn walk(code: &mut impl Sampler, g: &mut Grids) -> Result<(), CodecError> {
     let side = g.side;
+    let w = side - 1;
+    // Interior: 3 ≤ t ≤ w − 3.
+    let inner = |t: usize| t >= 3 && t + 3 <= w;
     for j in 0..side {
-        for i in columns(side, j) {
-            g.midpoint(code, (i, j))?;
+        if j.is_multiple_of(2) {
+            // Odd columns: the first and last are at the border.
+            for i in (1..side).step_by(2) {
+                if inner(i) {
+                    g.midpoint::<false, true>(code, (i, j))?;
+                } else {
+                    g.midpoint::<false, false>(code, (i, j))?;
+                }
+            }
+        } else if inner(j) {
+            for i in (0..side).step_by(2) {
+                g.midpoint::<true, true>(code, (i, j))?;
+            }
+        } else {
+            for i in (0..side).step_by(2) {
+                g.midpoint::<true, false>(code, (i, j))?;
+            }
         }
     }
     for j in (1..side).step_by(2) {
         for i in (1..side).step_by(2) {
-            g.centre(code, (i, j))?;
+            if inner(i) && inner(j) {
+                g.centre::<true>(code, (i, j))?;
+            } else {
+                g.centre::<false>(code, (i, j))?;
+            }
         }
     }
     Ok(())

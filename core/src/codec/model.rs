@@ -4,11 +4,13 @@
 //! `constriction`'s own lookup decoder keeps one entry per quantile (8 kB a
 //! model); a record that uses three dozen models then reads from 300 kB of
 //! tables in random order, and the decoder waited on the cache for most of
-//! its time (docs/BENCHMARKS.md "Bytes per sample"). Here a model is 128
-//! entries, one per 32 quantiles, each the symbol, left cumulative and
-//! probability packed in a `u32` when one symbol holds all 32 quantiles
+//! its time (docs/BENCHMARKS.md "Bytes per sample"). Here a model is 256
+//! entries, one per 16 quantiles, each the symbol, left cumulative and
+//! probability packed in a `u32` when one symbol holds all 16 quantiles
 //! (one load decodes most symbols), else the first symbol there, from which
-//! the cumulative distribution is walked (640 bytes a model). The model is
+//! the cumulative distribution is walked (1152 bytes a model; entries of 32
+//! quantiles, half the size, decoded real records 5 % slower, as more
+//! symbols needed the walk). The model is
 //! built from the encoder's, so the two agree bit for bit by construction.
 
 use constriction::stream::model::{DecoderModel, EncoderModel, EntropyModel};
@@ -17,8 +19,8 @@ use std::num::NonZeroU16;
 /// Precision of the models, bits (`constriction`'s "small" models).
 const PRECISION: usize = 12;
 /// Quantiles per coarse entry, as a shift.
-const COARSE_SHIFT: usize = 5;
-/// A coarse entry whose 32 quantiles all belong to its symbol.
+const COARSE_SHIFT: usize = 4;
+/// A coarse entry whose 16 quantiles all belong to its symbol.
 const PURE: u32 = 1 << 31;
 
 /// Decoder model over symbols `0..N`.
@@ -27,7 +29,7 @@ pub(crate) struct CompactDecoder<const N: usize> {
     /// `cdf[s]`: the left cumulative of symbol `s`; `cdf[s] = 4096` for
     /// `s ≥ N`.
     cdf: [u16; 64],
-    /// Per 32 quantiles: `PURE | prob << 18 | left << 6 | symbol`, or the
+    /// Per 16 quantiles: `PURE | prob << 18 | left << 6 | symbol`, or the
     /// symbol holding the first of them.
     coarse: [u32; 1 << (PRECISION - COARSE_SHIFT)],
 }
