@@ -238,8 +238,8 @@ fn encoder_model(scale: u8) -> &'static SmallContiguousCategoricalEntropyModel {
     })
 }
 
-/// The decoder model of scale `σ` (330 bytes), built on first use from the
-/// encoder's.
+/// The decoder model of scale `σ` (a [`CompactDecoder`]), built on first
+/// use from the encoder's.
 fn decoder_model(scale: u8) -> &'static CompactDecoder<BUCKETS> {
     static MODELS: [OnceLock<CompactDecoder<BUCKETS>>; 256] = [const { OnceLock::new() }; 256];
     MODELS[scale as usize].get_or_init(|| CompactDecoder::new(encoder_model(scale)))

@@ -123,8 +123,8 @@ fn encoder_model(scale: u8, centre: usize) -> &'static CostedModel {
     })
 }
 
-/// The decoder model of `(σ, centre)` (1152 bytes), built on first use from
-/// the encoder's.
+/// The decoder model of `(σ, centre)` (a [`CompactDecoder`]), built on
+/// first use from the encoder's.
 fn decoder_model(scale: u8, centre: usize) -> &'static CompactDecoder<SYMBOLS> {
     static MODELS: [[OnceLock<CompactDecoder<SYMBOLS>>; CENTRES]; 256] =
         [const { [const { OnceLock::new() }; CENTRES] }; 256];
@@ -277,9 +277,11 @@ impl Grids<'_> {
 /// edge midpoints row-major; pass 2, cell centres row-major), each
 /// predicted from the indices before it. `code` gets the prediction and
 /// the grid's index there (the source's when encoding) and returns the
-/// zig-zagged residual. The loops are split where the predictor changes
-/// (the cubic needs three LOD 1 samples on either side), so that no sample
-/// tests which case it is.
+/// zig-zagged residual. Each row's loop calls the predictor of its case
+/// (along `i` or `j`; the cubic, which needs three LOD 1 samples on either
+/// side, or the mean at the border), chosen once per row where the row
+/// decides it (odd rows) and per sample where the column does (even rows,
+/// cell centres).
 fn walk(code: &mut impl Sampler, g: &mut Grids) -> Result<(), CodecError> {
     let side = g.side;
     let w = side - 1;
