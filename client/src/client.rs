@@ -233,6 +233,8 @@ struct Job {
     tree: Tree,
     block: BlockId,
     forced: bool,
+    /// The frame the request was sent in.
+    sent_frame: u64,
     width: usize,
     codec: TreeCodec,
     bytes: Vec<u8>,
@@ -243,6 +245,7 @@ struct Done {
     tree: Tree,
     block: BlockId,
     forced: bool,
+    sent_frame: u64,
     bytes: usize,
     result: Result<Decoded, RefineError>,
 }
@@ -255,6 +258,7 @@ fn run_job(job: Job) -> Done {
         tree: job.tree,
         block: job.block,
         forced: job.forced,
+        sent_frame: job.sent_frame,
         bytes: job.bytes.len(),
         result,
     }
@@ -486,8 +490,11 @@ impl Client {
             }
             r => r,
         };
+        // The frame the request was sent in: its age counts the frames
+        // begun since.
+        let mut sent_frame = self.frame;
         if let Some(f) = self.queue.get(id) {
-            self.predictor.observe_latency(f.age);
+            sent_frame = self.frame.saturating_sub(u64::from(f.age));
             if result.is_ok() {
                 self.link.observe_rtt(self.clock - f.sent_at);
             }
@@ -520,6 +527,7 @@ impl Client {
             tree: req.tree,
             block: req.block,
             forced: req.forced,
+            sent_frame,
             width,
             codec,
             bytes,
@@ -580,6 +588,11 @@ impl Client {
             match d.result {
                 Ok(dec) => {
                     self.backoff.succeeded(d.tree, &d.block);
+                    // Send to application (the frame whose view the record
+                    // first serves): the horizon of the view prediction.
+                    let frames = self.frame.saturating_sub(d.sent_frame);
+                    self.predictor
+                        .observe_latency(u32::try_from(frames).unwrap_or(u32::MAX));
                     if self.tree.apply_refine(dec) {
                         stats.refines_applied += 1;
                         applied.push((d.tree, d.block, d.bytes, d.forced));

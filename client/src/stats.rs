@@ -107,6 +107,18 @@ impl Totals {
         }
     }
 
+    /// Bytes dropped on arrival or rejected (cancelled, stale, already
+    /// loaded, corrupt) over received bytes: the part of
+    /// [`Totals::wasted_ratio`] that was never applied (0 when nothing was
+    /// received).
+    pub fn dropped_ratio(&self) -> f64 {
+        if self.bytes_received == 0 {
+            0.0
+        } else {
+            (self.bytes_dropped + self.bytes_rejected) as f64 / self.bytes_received as f64
+        }
+    }
+
     /// Bytes of forced neighbour refines not drawn on arrival over received
     /// bytes (0 when nothing was received).
     pub fn forced_ratio(&self) -> f64 {

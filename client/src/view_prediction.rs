@@ -24,12 +24,18 @@ use glam::DVec3;
 const MAX_TURN: f64 = std::f64::consts::PI / 6.0;
 /// Weight of a new latency sample in the moving average.
 const LATENCY_SMOOTHING: f64 = 0.2;
+/// Weight of a new sample in the latency's mean deviation (RFC 6298's β).
+const DEV_SMOOTHING: f64 = 0.25;
+/// Deviations added to the mean latency: most answers arrive before it.
+const DEV_MARGIN: f64 = 2.0;
 
 /// Linear camera extrapolation over the measured request latency.
 #[derive(Debug, Clone, Default)]
 pub struct ViewPredictor {
     prev: Option<Camera>,
     latency_frames: Option<f64>,
+    /// Moving mean deviation of the latency (RFC 6298's RTTVAR), frames.
+    latency_dev: f64,
 }
 
 impl ViewPredictor {
@@ -38,19 +44,25 @@ impl ViewPredictor {
         ViewPredictor::default()
     }
 
-    /// A response arrived `frames` frames after its request was sent.
+    /// A response was applied (decoded and in the tree, first seen by the
+    /// selection) `frames` frames after its request was sent.
     pub fn observe_latency(&mut self, frames: u32) {
         let f = frames as f64;
         self.latency_frames = Some(match self.latency_frames {
             None => f,
-            Some(l) => l + LATENCY_SMOOTHING * (f - l),
+            Some(l) => {
+                self.latency_dev += DEV_SMOOTHING * ((f - l).abs() - self.latency_dev);
+                l + LATENCY_SMOOTHING * (f - l)
+            }
         });
     }
 
-    /// The measured latency from request to applied answer, in frames
-    /// (delivery plus one frame of decoding), if any response arrived yet.
+    /// The horizon of the prediction in frames: the measured latency from
+    /// request to applied answer plus [`DEV_MARGIN`] of its deviations, if
+    /// any response was applied yet.
     pub fn horizon_frames(&self) -> Option<f64> {
-        self.latency_frames.map(|l| l + 1.0)
+        self.latency_frames
+            .map(|l| l + DEV_MARGIN * self.latency_dev)
     }
 
     /// Record this frame's camera and return the camera predicted when a
@@ -122,7 +134,7 @@ mod tests {
     #[test]
     fn moving_eye_is_extrapolated_over_the_latency() {
         let mut p = ViewPredictor::new();
-        p.observe_latency(9); // + 1 frame of decoding = 10
+        p.observe_latency(10);
         let a = cam(DVec3::new(R + 100_000.0, 0.0, 0.0), DVec3::NEG_X);
         let b = cam(DVec3::new(R + 99_000.0, 0.0, 0.0), DVec3::NEG_X);
         assert!(p.predict(&a, R).is_none());
@@ -145,7 +157,7 @@ mod tests {
     #[test]
     fn turning_view_is_extrapolated_and_capped() {
         let mut p = ViewPredictor::new();
-        p.observe_latency(4); // 5 frames
+        p.observe_latency(5);
         let eye = DVec3::new(R + 1e6, 0.0, 0.0);
         let deg = 1f64.to_radians();
         let a = cam(eye, DVec3::NEG_X);
@@ -156,7 +168,7 @@ mod tests {
         assert!((turned - 6.0).abs() < 1e-6, "{turned}");
         // 100 frames of latency: capped at 30° beyond the current direction.
         let mut p = ViewPredictor::new();
-        p.observe_latency(99);
+        p.observe_latency(100);
         p.predict(&a, R);
         let q = p.predict(&b, R).expect("turning");
         let turned = DVec3::NEG_X.angle_between(q.forward).to_degrees();

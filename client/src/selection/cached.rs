@@ -159,6 +159,8 @@ pub struct Selector {
     /// Per frame: the drawn LOD of visible leaves.
     drawn: Vec<u8>,
     cdrawn: Vec<u8>,
+    /// Per frame, per colour node: some drawn block is textured with it.
+    cbound: Vec<bool>,
     /// Per drawn block: its elevation node and colour binding.
     draw_idx: Vec<(u32, Binding)>,
     /// A draw list handed back by the caller ([`Selector::recycle`]),
@@ -1000,15 +1002,25 @@ impl Selector {
         // Colour tree.
         self.cdrawn.clear();
         self.cdrawn.resize(self.cnodes.len(), NOT_DRAWN);
+        // The colour leaves some drawn block is textured with: only those
+        // load or split. A leaf whose elevation block is visible but split
+        // into blocks that are all culled (behind the horizon, outside the
+        // frustum) textures nothing.
+        let mut bound = std::mem::take(&mut self.cbound);
+        bound.clear();
+        bound.resize(self.cnodes.len(), false);
+        for &(_, b) in &self.draw_idx {
+            if let Binding::Node(j) = b {
+                bound[j as usize] = true;
+            }
+        }
         if let Some(ct) = tree.colour() {
             let cw = ct.width as f64;
             for (j, c) in self.cnodes.iter().enumerate() {
                 let h = &self.hot[c.elev as usize];
-                let visible = self.state[c.elev as usize] != 0;
-                // A hidden leaf triggers nothing, and its drawn LOD is
-                // never asked for: the colour bound to a drawn block is on
-                // its (visible) elevation path.
-                if !c.split && !visible {
+                // A leaf no drawn block is textured with triggers nothing,
+                // and its drawn LOD is never asked for.
+                if !c.split && !bound[j] {
                     continue;
                 }
                 let m = &mut self.cmemo[j];
@@ -1060,6 +1072,7 @@ impl Selector {
                 }
             }
         }
+        self.cbound = bound;
         // Neighbour LODs and colour bindings (split and hidden nodes have
         // no drawn LOD).
         for (d, &(i, binding)) in cx.out.draw.iter_mut().zip(&self.draw_idx) {

@@ -3,7 +3,7 @@
 
 use crate::refinement::{Footprint, Kind, Refiner};
 use crate::request_queue::{OpKind, TreeOp};
-use crate::tree::{FastMap, PartialTree};
+use crate::tree::{FastMap, FastSet, PartialTree};
 use crate::visibility::View;
 use planet_core::format::Tree;
 use planet_core::{BlockId, Edge, Face};
@@ -20,8 +20,8 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
     };
     let et = tree.elevation();
     let ew = et.width as f64;
-    // Elevation, per node: visibility and this frame's state (split, or
-    // leaf with its drawn LOD when visible), for colour and neighbours.
+    // Elevation, per node: this frame's state (split, or leaf with its
+    // drawn LOD when visible), for neighbours.
     let mut info: FastMap<BlockId, NodeFrame> = FastMap::default();
     info.reserve(et.len());
     let mut stack: Vec<(BlockId, bool)> = Vec::with_capacity(64);
@@ -37,7 +37,6 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 info.insert(
                     id,
                     NodeFrame {
-                        visible,
                         split: true,
                         drawn: None,
                     },
@@ -71,7 +70,6 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             info.insert(
                 id,
                 NodeFrame {
-                    visible,
                     split: false,
                     drawn: visible.then_some(lod),
                 },
@@ -92,8 +90,16 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             cx.draw(id, lod, et.width, d.importance, (sse, area));
         }
     }
-    // Colour tree.
+    // Colour tree: only the leaves some drawn block is textured with (its
+    // deepest colour node) load or split.
     let mut colour_drawn: FastMap<BlockId, u8> = FastMap::default();
+    let bound: FastSet<BlockId> = tree.colour().map_or_else(FastSet::default, |c| {
+        cx.out
+            .draw
+            .iter()
+            .filter_map(|d| c.covering(&d.block).filter(|n| !n.split).map(|n| n.id))
+            .collect()
+    });
     if let Some(ct) = tree.colour() {
         let cw = ct.width as f64;
         for f in Face::ALL {
@@ -103,7 +109,6 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 let Some(b) = et.get(&id).and_then(|e| e.bounds.as_ref()) else {
                     continue;
                 };
-                let visible = info.get(&id).is_some_and(|i| i.visible);
                 let (err1, err0) = (n.record.error as f64, n.child_error());
                 let m = refiner.measure(Kind::Colour, &Footprint::of(b), cw, err1, err0);
                 if n.split {
@@ -122,7 +127,7 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 }
                 let d = refiner.leaf(&m, n.lod);
                 colour_drawn.insert(id, d.lod.max(n.lod));
-                if !visible {
+                if !bound.contains(&id) {
                     continue;
                 }
                 if d.load {
@@ -154,7 +159,6 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
 /// One elevation node's state in this frame's traversal.
 #[derive(Clone, Copy)]
 struct NodeFrame {
-    visible: bool,
     split: bool,
     /// Drawn LOD (visible leaves).
     drawn: Option<u8>,
