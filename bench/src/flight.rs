@@ -9,6 +9,20 @@
 //! (max and mean SSE and true error against time, max SSE against bytes),
 //! `summary.md` and `summary.json` (one object per run).
 //!
+//! The error of a frame is the screen-space error (SSE) of each drawn
+//! block, and its mean is taken over the screen's pixels: each drawn block
+//! weighted by its approximate screen area (`error_integral_px_s` = ∫ that
+//! mean dt, the error of the average pixel: the Speed Index's ∫ (1 − visual
+//! completeness) dt, which peers.md §6 names the template, weighs pixels
+//! too). The mean over drawn blocks (`block_error_integral_px_s`) is
+//! reported beside it but is not a convergence measure: it weighs a block a
+//! few pixels wide like one that fills half the screen, so it changes with
+//! how a policy tiles the view, not only with the image, and it can rise
+//! when every pixel gets better. Nine blocks at 0 px and one at 100 px
+//! average 10 px; refining the last into four children at 65 px makes every
+//! one of its pixels better and the block mean 20 px (the pixel mean goes
+//! from the 100 px block's share of the screen × 100 to × 65).
+//!
 //! `--transport` (repeatable) adds the transport as a dimension: `quic`
 //! (planet-server in process, through the UDP relay) and `http2` (the same
 //! file served by nginx over HTTPS byte ranges, through the TCP link: kernel
@@ -201,15 +215,19 @@ pub struct Summary {
     /// The database's file stem.
     pub db: String,
     pub policy: Policy,
-    /// ∫ mean SSE dt and ∫ max SSE dt over the flight (px·s).
+    /// ∫ per-pixel mean SSE dt (drawn blocks weighted by screen area) and
+    /// ∫ max SSE dt over the flight (px·s).
     pub error_integral: f64,
     pub max_sse_integral: f64,
-    /// ∫ per-pixel (area-weighted) mean SSE dt.
-    pub pixel_error_integral: f64,
+    /// ∫ mean SSE over drawn blocks dt (unweighted; see the module doc).
+    pub block_error_integral: f64,
     /// Per stop (static segment): its start and the time to max SSE ≤ the
     /// tolerance from it (`None`: not reached during the stop).
     pub stops: Vec<(f64, Option<f64>)>,
     pub wasted_pct: f64,
+    /// Of the wasted bytes, those dropped on arrival or rejected (the rest
+    /// were applied and never drawn).
+    pub dropped_pct: f64,
     pub needed_over_delivered: Option<f64>,
     pub first_frame_ms: f64,
     /// The measured connection resumed a session and its Hello went as
@@ -274,15 +292,20 @@ struct JsonSummary<'a> {
     policy: &'a str,
     trajectory: &'a str,
     max_sse_px: f64,
+    /// ∫ per-pixel mean SSE dt.
     error_integral_px_s: f64,
     max_sse_integral_px_s: f64,
-    pixel_error_integral_px_s: f64,
+    /// ∫ mean SSE over drawn blocks dt.
+    block_error_integral_px_s: f64,
     stops_s: Vec<f64>,
     time_to_1px_after_stops_s: Vec<Option<f64>>,
     bytes: u64,
     link_bytes: u64,
     relevant_ratio: f64,
     wasted_ratio: f64,
+    /// Part of `wasted_ratio` dropped on arrival or rejected; the rest was
+    /// applied and never drawn.
+    dropped_ratio: f64,
     requests: u64,
     cancels: u64,
     needed_over_delivered: Option<f64>,
@@ -393,13 +416,14 @@ pub fn run(args: FlightArgs) -> Result<()> {
             max_sse_px: a.max_sse,
             error_integral_px_s: s.error_integral,
             max_sse_integral_px_s: s.max_sse_integral,
-            pixel_error_integral_px_s: s.pixel_error_integral,
+            block_error_integral_px_s: s.block_error_integral,
             stops_s: s.stops.iter().map(|x| x.0).collect(),
             time_to_1px_after_stops_s: s.stops.iter().map(|x| x.1).collect(),
             bytes: s.bytes,
             link_bytes: s.link_bytes_down,
             relevant_ratio: s.relevant_pct / 100.0,
             wasted_ratio: s.wasted_pct / 100.0,
+            dropped_ratio: s.dropped_pct / 100.0,
             requests: s.requests,
             cancels: s.cancels,
             needed_over_delivered: s.needed_over_delivered,
@@ -749,9 +773,9 @@ fn run_link(
         .map(|s| (s.0, time_to_sse(&rows, s.0, s.1.min(duration), tol)))
         .collect();
     let dt = 1.0 / a.fps;
-    let error_integral: f64 = rows.iter().map(|r| r.sse_mean * dt).sum();
+    let error_integral: f64 = rows.iter().map(|r| r.sse_pixel_mean * dt).sum();
     let max_sse_integral: f64 = rows.iter().map(|r| r.sse_max * dt).sum();
-    let pixel_error_integral: f64 = rows.iter().map(|r| r.sse_pixel_mean * dt).sum();
+    let block_error_integral: f64 = rows.iter().map(|r| r.sse_mean * dt).sum();
     let needed_over_delivered = match (needed, bandwidth) {
         (Some(n), Some(bps)) if duration > 0.0 => Some(n as f64 / (bps as f64 / 8.0 * duration)),
         _ => None,
@@ -769,9 +793,10 @@ fn run_link(
             policy,
             error_integral,
             max_sse_integral,
-            pixel_error_integral,
+            block_error_integral,
             stops,
             wasted_pct: 100.0 * totals.wasted_ratio(),
+            dropped_pct: 100.0 * totals.dropped_ratio(),
             needed_over_delivered,
             first_frame_ms,
             connect_ms,
@@ -852,7 +877,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| database | link | transport | policy | ∫ mean SSE dt | ∫ max SSE dt | ∫ per-pixel SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
@@ -869,7 +894,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
@@ -877,7 +902,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.policy,
             s.error_integral,
             s.max_sse_integral,
-            s.pixel_error_integral,
+            s.block_error_integral,
             stops.join(", "),
             s.bytes as f64 / 1e6,
             s.link_bytes_down as f64 / 1e6,
@@ -886,6 +911,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.relevant_pct,
             s.forced_pct,
             s.wasted_pct,
+            s.dropped_pct,
             s.requests,
             s.cancels,
             s.first_frame_ms,

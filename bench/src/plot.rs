@@ -26,7 +26,7 @@ const POLICY_COLOURS: [RGBColor; 4] = [
     RGBColor(140, 60, 170),
 ];
 
-/// One link, every policy overlaid: max SSE, mean SSE and the largest true
+/// One link, every policy overlaid: max SSE, mean SSE per pixel and the largest true
 /// error at the probes, each against time (left) and against megabytes
 /// received (right), log scales floored at 0.01. The tolerance is drawn as
 /// a grey line.
@@ -62,12 +62,16 @@ pub fn policies_plot(
         ("received (MB)", "max SSE (px)", mb_max, sse_hi, |r| {
             Some((r.bytes_total as f64 / 1e6, r.sse_max))
         }),
-        ("time (s)", "mean SSE (px)", t_max, sse_hi, |r| {
-            Some((r.t, r.sse_mean))
+        ("time (s)", "mean SSE per pixel (px)", t_max, sse_hi, |r| {
+            Some((r.t, r.sse_pixel_mean))
         }),
-        ("received (MB)", "mean SSE (px)", mb_max, sse_hi, |r| {
-            Some((r.bytes_total as f64 / 1e6, r.sse_mean))
-        }),
+        (
+            "received (MB)",
+            "mean SSE per pixel (px)",
+            mb_max,
+            sse_hi,
+            |r| Some((r.bytes_total as f64 / 1e6, r.sse_pixel_mean)),
+        ),
         (
             "time (s)",
             "max true error at probes (m)",
