@@ -143,6 +143,21 @@ mod tests {
         assert_eq!(q.forward, b.forward.normalize());
     }
 
+    /// The horizon is the mean latency plus two mean deviations: a steady
+    /// latency predicts exactly that far, a jittery one further.
+    #[test]
+    fn horizon_adds_the_latency_deviation() {
+        let mut p = ViewPredictor::new();
+        assert_eq!(p.horizon_frames(), None);
+        p.observe_latency(10);
+        p.observe_latency(10);
+        assert_eq!(p.horizon_frames(), Some(10.0));
+        p.observe_latency(20);
+        // Mean 10 + 0.2·10 = 12; deviation 0.25·10 = 2.5.
+        let h = p.horizon_frames().expect("measured");
+        assert!((h - 17.0).abs() < 1e-12, "{h}");
+    }
+
     #[test]
     fn prediction_never_enters_the_planet() {
         let mut p = ViewPredictor::new();

@@ -17,6 +17,7 @@ use planet_client::selection::{select, Selector};
 use planet_client::stats::FrameStats;
 use planet_client::visibility::View;
 use planet_client::{Camera, Client, Policy};
+use planet_core::format::Tree;
 use planet_testkit::testdb::FakeServer;
 use proptest::prelude::*;
 
@@ -37,6 +38,16 @@ fn checked_step(
     let want = select(c.tree(), &view, &r);
     let got = sel.select(c.tree(), &view, &r);
     assert_eq!(got, want, "selector differs from select");
+    // Colour loads only what a drawn block is textured with.
+    for l in want.loads.iter().filter(|l| l.tree == Tree::Colour) {
+        assert!(
+            want.draw
+                .iter()
+                .any(|d| d.colour.is_some_and(|b| b.block == l.block)),
+            "colour load {:?} textures no drawn block",
+            l.block
+        );
+    }
     if let Some(e) = sel.consistency_error(c.tree()) {
         panic!("spliced cache differs from a rebuilt one: {e}");
     }
