@@ -58,7 +58,7 @@ impl ViewPredictor {
     }
 
     /// The horizon of the prediction in frames: the measured latency from
-    /// request to applied answer plus [`DEV_MARGIN`] of its deviations, if
+    /// request to applied answer plus `DEV_MARGIN` (two) of its deviations, if
     /// any response was applied yet.
     pub fn horizon_frames(&self) -> Option<f64> {
         self.latency_frames
