@@ -13,8 +13,9 @@
 //! block, and its mean is taken over the screen's pixels: each drawn block
 //! weighted by its approximate screen area (`error_integral_px_s` = ∫ that
 //! mean dt, the error of the average pixel: the Speed Index's ∫ (1 − visual
-//! completeness) dt, docs/REFERENCES.md "Measures", weighs pixels too). The mean over drawn blocks (`block_error_integral_px_s`) is
-//! reported beside it but is not a convergence measure: it weighs a block a
+//! completeness) dt, docs/REFERENCES.md "Measures", weighs pixels too). The
+//! mean over drawn blocks (`block_error_integral_px_s`) is reported beside
+//! it but is not a convergence measure: it weighs a block a
 //! few pixels wide like one that fills half the screen, so it changes with
 //! how a policy tiles the view, not only with the image, and it can rise
 //! when every pixel gets better. Nine blocks at 0 px and one at 100 px

@@ -26,10 +26,10 @@ const POLICY_COLOURS: [RGBColor; 4] = [
     RGBColor(140, 60, 170),
 ];
 
-/// One link, every policy overlaid: max SSE, mean SSE per pixel and the largest true
-/// error at the probes, each against time (left) and against megabytes
-/// received (right), log scales floored at 0.01. The tolerance is drawn as
-/// a grey line.
+/// One link, every policy overlaid: max SSE, mean SSE per pixel and the
+/// largest true error at the probes, each against time (left) and against
+/// megabytes received (right), log scales floored at 0.01. The tolerance is
+/// drawn as a grey line.
 pub fn policies_plot(
     path: &Path,
     title: &str,

@@ -492,13 +492,15 @@ impl Client {
         };
         // The frame the request was sent in: its age counts the frames
         // begun since.
-        let mut sent_frame = self.frame;
-        if let Some(f) = self.queue.get(id) {
-            sent_frame = self.frame.saturating_sub(u64::from(f.age));
-            if result.is_ok() {
-                self.link.observe_rtt(self.clock - f.sent_at);
+        let sent_frame = match self.queue.get(id) {
+            Some(f) => {
+                if result.is_ok() {
+                    self.link.observe_rtt(self.clock - f.sent_at);
+                }
+                self.frame.saturating_sub(u64::from(f.age))
             }
-        }
+            None => self.frame,
+        };
         let Some(req) = self.queue.take(id) else {
             if let Ok(b) = &result {
                 self.since_last.bytes_received += b.len() as u64;

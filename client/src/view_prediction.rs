@@ -9,10 +9,12 @@
 //! blocks no longer drawn and are irrelevant bytes.
 //!
 //! The predictor extrapolates the camera linearly (eye and view direction,
-//! per frame) over the measured request latency in frames (an exponential
-//! moving average of the frames from send to delivery, plus one for the
-//! decode), and the client requests a visible block only if it is visible in
-//! the predicted view as well. A static camera predicts itself, so nothing
+//! per frame) over the measured request latency in frames: an exponential
+//! moving average of the frames from send to the frame that applies the
+//! answer (after its decode), plus two moving mean deviations of it (RFC
+//! 6298's RTTVAR), so that most answers land before the predicted view. The
+//! client requests a visible block only if it is visible in the predicted
+//! view as well. A static camera predicts itself, so nothing
 //! changes for it; the displacement is capped at half the height above the
 //! planet's minimum sphere and the turn at 30°, so a prediction never puts the
 //! eye inside the planet or flips the view.
