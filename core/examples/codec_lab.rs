@@ -2,7 +2,10 @@
 //! decoded grids (for choosing the codec): `cargo run --release -p
 //! planet-core --example codec_lab -- DB [k]`; `DB decode` measures the
 //! decode rate of a database's own records, `DB payload k` the payload size
-//! of each quantised codec on an exact database's grids.
+//! (and a digest of the payloads, which a change of implementation that
+//! keeps the format keeps) of each quantised codec on an exact database's
+//! grids; `synthetic AMP` the id 2 decode rate of noise of amplitude AMP
+//! (0: flat, every residual zero: the decoder's cost without branch misses).
 use planet_core::codec::ElevationCodec;
 use planet_core::format::{parse_record, DbFile};
 use planet_core::lod;
@@ -220,6 +223,16 @@ fn payload_sizes(path: &str, k: u16) {
         let payloads: Vec<_> = gs.iter().map(|g| codec.encode(g, w)).collect();
         let enc = n / ((cpu_ns() - start) as f64 * 1e-9);
         let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
+        // A digest of every payload in order: an implementation change that
+        // keeps the format must keep it.
+        let digest = {
+            use std::hash::{Hash, Hasher};
+            let mut h = std::collections::hash_map::DefaultHasher::new();
+            for p in &payloads {
+                p.bytes.hash(&mut h);
+            }
+            h.finish()
+        };
         // Each grid's LOD 1 (the source: the quantisation is pointwise).
         let firsts: Vec<Vec<i16>> = gs
             .iter()
@@ -242,7 +255,7 @@ fn payload_sizes(path: &str, k: u16) {
         }
         let dec = runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9);
         println!(
-            "{} k {k}: {:.4} B per new sample ({} grids), encode {:.1} M, decode {:.1} M samples per CPU-second",
+            "{} k {k}: {:.4} B per new sample ({} grids, digest {digest:016x}), encode {:.1} M, decode {:.1} M samples per CPU-second",
             codec.name(),
             bytes as f64 / n,
             gs.len(),
@@ -252,8 +265,62 @@ fn payload_sizes(path: &str, k: u16) {
     }
 }
 
+/// Decode rate of synthetic grids: `flat` (every residual 0) or `noise`
+/// (uniform noise of amplitude `amp`), to bound the decoder's cost.
+fn synthetic(amp: i32) {
+    let w = 64;
+    let side = w + 1;
+    let mut x = 1u32;
+    let gs: Vec<Vec<i16>> = (0..500)
+        .map(|_| {
+            (0..side * side)
+                .map(|_| {
+                    x = x.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (if amp == 0 {
+                        100
+                    } else {
+                        100 + (x >> 16) as i32 % amp
+                    }) as i16
+                })
+                .collect()
+        })
+        .collect();
+    let codec = ElevationCodec::Laplace { max_error: 0 };
+    let payloads: Vec<_> = gs.iter().map(|g| codec.encode(g, w)).collect();
+    let firsts: Vec<Vec<i16>> = gs
+        .iter()
+        .map(|g| {
+            let mut f = vec![0i16; side * side];
+            lod::elevation_place_first_lod(&lod::elevation_first_lod(g, w), w, &mut f);
+            f
+        })
+        .collect();
+    let n = (gs.len() * lod::elevation_new_samples(w)) as f64;
+    let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
+    let mut grid = vec![0i16; side * side];
+    let (start, mut runs) = (cpu_ns(), 0);
+    while cpu_ns() - start < 2_000_000_000 {
+        for (p, f) in payloads.iter().zip(&firsts) {
+            grid.copy_from_slice(f);
+            codec
+                .decode(&p.bytes, p.raw_len as usize, w, &mut grid)
+                .unwrap();
+        }
+        runs += 1;
+    }
+    let dec = runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9);
+    println!(
+        "amp {amp}: {:.3} B/sample, decode {:.1} M samples per CPU-second",
+        bytes as f64 / n,
+        dec / 1e6
+    );
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    if args.get(1).map(String::as_str) == Some("synthetic") {
+        return synthetic(args.get(2).map_or(0, |s| s.parse().unwrap()));
+    }
     if args.get(2).map(String::as_str) == Some("decode") {
         return decode_rate(&args[1]);
     }
