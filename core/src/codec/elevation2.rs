@@ -450,18 +450,12 @@ fn midpoint_row(
     let (q, zs, es) = (&mut q[at..][..n], &mut rest[..n], &mut es[at..][..n]);
     let (p0, p32, meta) = (&p.p0[at..][..n], &p.p32[at..][..n], &p.meta[at..][..n]);
     let mut prev = 0u32;
-    for x in 0..n {
-        let (v, z) = put(
-            code,
-            range,
-            p0[x],
-            meta[x],
-            class(act[x].saturating_add(prev)),
-            q[x],
-        )?;
-        q[x] = v;
-        zs[x] = z;
-        es[x] = (v << FRAC_BITS) - p32[x];
+    let pre = p0.iter().zip(meta).zip(act.iter()).zip(p32);
+    for (((q, zs), es), (((&p0, &meta), &act), &p32)) in q.iter_mut().zip(zs).zip(es).zip(pre) {
+        let (v, z) = put(code, range, p0, meta, class(act.saturating_add(prev)), *q)?;
+        *q = v;
+        *zs = z;
+        *es = (v << FRAC_BITS) - p32;
         prev = z;
     }
     Ok(())
@@ -509,8 +503,9 @@ fn walk(code: &mut impl Sampler, g: &mut Planes) -> Result<(), CodecError> {
     pc.act.truncate(h * h);
     pc.meta.truncate(h * h);
     g.predict_c(&mut pc);
-    for (k, q) in g.c.iter_mut().enumerate() {
-        (*q, _) = put(code, range, pc.p0[k], pc.meta[k], class(pc.act[k]), *q)?;
+    let pre = pc.p0.iter().zip(&pc.meta).zip(&pc.act);
+    for (q, ((&p0, &meta), &act)) in g.c.iter_mut().zip(pre) {
+        (*q, _) = put(code, range, p0, meta, class(act), *q)?;
     }
     Ok(())
 }
