@@ -236,3 +236,140 @@ proptest! {
         }
     }
 }
+
+/// The case the colour binding is for: an elevation block that passes the
+/// cull test while each of its children fails it (the conservative tests
+/// of a large block near the frustum's edge or the horizon), under a
+/// colour leaf with its id that the refiner would load or split. Its
+/// texture would go on no drawn block, so neither selection requests it.
+/// A descent grows the tree over a database whose colour is coarser per
+/// level than its elevation (32 texels a block against 8 samples), so
+/// some colour leaves lie over split elevation blocks; seeded cameras about
+/// each such block (an eye within a few block radii, any direction, a
+/// field of view of 1–90°) must meet the case (asserted: the test is not
+/// vacuous; 560 of 32 000 probes meet it) and never request the leaf. The
+/// selection before e01dd2f, whose colour gate was the elevation block's
+/// visibility, fails here ("over culled children requested").
+#[test]
+fn colour_leaf_over_culled_children_is_not_requested() {
+    use planet_client::refinement::{Footprint, Kind};
+    use planet_client::ClientConfig;
+    use planet_core::{BlockId, Face};
+    use planet_testkit::testdb::{TestDb, TestDbConfig};
+    let db = TestDb::build(TestDbConfig {
+        elevation_max_level: 5,
+        colour: Some((32, 5)),
+        ..TestDbConfig::default()
+    });
+    // Decoded on the frame's thread: the same tree on every run.
+    let cfg = ClientConfig {
+        decode_threads: 0,
+        ..ClientConfig::for_policy(Policy::Ours, 1.0)
+    };
+    let mut c = Client::new(db.header.clone(), cfg).expect("client");
+    let mut s = FakeServer::new(1);
+    let mut sel = Selector::new();
+    let base = DVec3::new(1.0, 0.2, 0.3);
+    let radius = db.header.datum.equatorial_radius();
+    let surface = |dir: DVec3, alt: f64| dir.normalize() * (radius + alt);
+    for k in 0..150 {
+        let eye = surface(base, 2e7 * 0.93f64.powi(k));
+        let out = c.frame(&Camera::look_at(eye, DVec3::ZERO, DVec3::Z), 1.0 / 60.0);
+        s.submit(&out);
+        for (id, bytes) in s.tick(&db) {
+            c.deliver(id, Ok(bytes));
+        }
+    }
+    // The colour leaves over a split elevation block (whose id they share)
+    // that could still refine.
+    let (et, ct) = (c.tree().elevation(), c.tree().colour().expect("colour"));
+    let mut leaves: Vec<BlockId> = Vec::new();
+    let mut stack: Vec<BlockId> = Face::ALL.map(BlockId::root).into();
+    while let Some(id) = stack.pop() {
+        let Some(n) = ct.get(&id) else { continue };
+        if n.split {
+            stack.extend(id.children());
+        } else if et.get(&id).is_some_and(|e| e.split) && (n.lod == 1 || n.can_split_data().is_ok())
+        {
+            leaves.push(id);
+        }
+    }
+    assert!(!leaves.is_empty(), "no colour leaf over a split block");
+    // Seeded probes about each: an eye within a few block radii of the
+    // block, looking anywhere, with a field of view of 1–90°.
+    let mut x = 0x9e37_79b9u64;
+    let mut rand = move || {
+        x = x
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (x >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut cases, mut probes) = (0, 0);
+    for &id in &leaves {
+        let Some(b) = et.get(&id).and_then(|e| e.bounds.clone()) else {
+            continue;
+        };
+        for _ in 0..2_000 {
+            probes += 1;
+            let mut unit =
+                || DVec3::new(rand() - 0.5, rand() - 0.5, rand() - 0.5).normalize_or(DVec3::X);
+            let (offset, look) = (unit(), unit());
+            let eye = b.centre + offset * b.sphere_radius * (0.2 + 3.0 * rand());
+            let eye = eye.normalize() * eye.length().max(radius + 100.0);
+            let mut cam = Camera::look_at(eye, eye + look, eye.normalize());
+            cam.fov_y = (1.0 + 89.0 * rand()).to_radians();
+            let (r_min, r_max) = c.radii();
+            let view = View::new(&cam, r_min, r_max);
+            // The case: the block visible down from its root, each child
+            // culled.
+            let visible = |id: &BlockId| {
+                et.get(id)
+                    .and_then(|n| n.bounds.as_ref())
+                    .is_some_and(|b| view.is_visible(b))
+            };
+            if !(0..=id.level).all(|l| visible(&id.ancestor(l)))
+                || id.children().iter().any(visible)
+            {
+                continue;
+            }
+            let r = c.refiner(&view);
+            let cn = ct.get(&id).expect("colour leaf");
+            let m = r.measure(
+                Kind::Colour,
+                &Footprint::of(&b),
+                ct.width as f64,
+                cn.record.error as f64,
+                cn.child_error(),
+            );
+            let d = r.leaf(&m, cn.lod);
+            if !(d.load || (d.split && cn.can_split_data().is_ok())) {
+                continue;
+            }
+            let got = select(c.tree(), &view, &r);
+            assert_eq!(
+                sel.select(c.tree(), &view, &r),
+                got,
+                "selector differs from select"
+            );
+            if got
+                .draw
+                .iter()
+                .any(|d| d.colour.is_some_and(|b| b.block == id))
+            {
+                continue;
+            }
+            cases += 1;
+            let requested = got
+                .loads
+                .iter()
+                .map(|l| (l.tree, l.block))
+                .chain(got.ops.iter().map(|o| (o.tree, o.block)))
+                .any(|(t, b)| t == Tree::Colour && b == id);
+            assert!(
+                !requested,
+                "colour leaf {id:?} over culled children requested"
+            );
+        }
+    }
+    assert!(cases > 0, "no probe of {probes} met the case");
+}
