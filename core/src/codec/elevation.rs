@@ -94,10 +94,13 @@ impl Quantiser {
         ((n * self.inverse) >> 40) as i32 - self.base
     }
 
-    /// The stored value of an index, clamped to `i16`.
+    /// The stored value of an index in [`Self::range`] (where `q·s` fits
+    /// in `i32`: `|q·s| < 32 768 + s`), clamped to `i16`: [`value`] in
+    /// `i32`.
     #[inline(always)]
     pub(super) fn value(&self, q: i32) -> i16 {
-        value(q, self.s)
+        debug_assert!((self.range().0..=self.range().1).contains(&q));
+        (q * self.s).clamp(i16::MIN as i32, i16::MAX as i32) as i16
     }
 
     /// The indices of `i16::MIN` and `i16::MAX`.
@@ -309,12 +312,14 @@ pub(super) fn rans_encode(
 }
 
 /// The checks and parts of a quantised payload (ids 1 and 2) for a grid of
-/// `side²` samples: `heads` scale bytes, then the rANS words.
+/// `side²` samples: `heads` scale bytes, then the rANS words, read into
+/// `words` (a buffer whose allocation the coder takes over).
 pub(super) fn open<'a>(
     raw: &'a [u8],
     heads: usize,
     side: usize,
     grid: &[i16],
+    mut words: Vec<u32>,
 ) -> Result<(&'a [u8], DefaultAnsCoder), CodecError> {
     if grid.len() != side * side {
         return Err(CodecError::Grid {
@@ -329,10 +334,11 @@ pub(super) fn open<'a>(
         });
     }
     let (scales, body) = raw.split_at(heads);
-    let words: Vec<u32> = body
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect();
+    words.clear();
+    words.extend(
+        body.chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])),
+    );
     let coder = DefaultAnsCoder::from_compressed(words)
         .map_err(|_| CodecError::Rans("compressed data ends in a zero word".into()))?;
     Ok((scales, coder))
@@ -342,7 +348,7 @@ pub(super) fn open<'a>(
 /// decoded samples; every new sample ends within `k` of its source value.
 pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
     let side = w + 1;
-    let (scales, mut coder) = open(raw, CONTEXTS, side, grid)?;
+    let (scales, mut coder) = open(raw, CONTEXTS, side, grid, Vec::new())?;
     let m: [_; CONTEXTS] = std::array::from_fn(|c| decoder_model(scales[c]));
     let (k, s) = (k as i32, 2 * k as i32 + 1);
     let (lo, hi) = (index(i16::MIN, k, s), index(i16::MAX, k, s));

@@ -34,7 +34,7 @@
 //! little-endian, as `constriction`'s `DefaultAnsCoder` leaves them).
 //!
 //! The coder (encoder and decoder alike) holds the grid's indices in four
-//! planes ([`Planes`]: LOD 1, the two kinds of edge midpoint, the cell
+//! planes (`Planes`: LOD 1, the two kinds of edge midpoint, the cell
 //! centres) and computes each plane's predictions in loops of their own
 //! before its samples are coded, so that only the loop over the rANS coder
 //! is sequential; the payloads are byte for byte those of the grid walk
@@ -213,13 +213,13 @@ struct Preds {
 }
 
 impl Preds {
-    fn new(n: usize) -> Preds {
-        Preds {
-            p0: vec![0; n],
-            p32: vec![0; n],
-            act: vec![0; n],
-            meta: vec![0; n],
-        }
+    /// Room for `n` predictions (the values are written before they are
+    /// read).
+    fn resize(&mut self, n: usize) {
+        self.p0.resize(n, 0);
+        self.p32.resize(n, 0);
+        self.act.resize(n, 0);
+        self.meta.resize(n, 0);
     }
 
     /// Nearest indices, centres and flips of the predictions `p32`.
@@ -245,6 +245,7 @@ impl Preds {
 /// the errors `e*` of their fixed-point predictions (which correct the
 /// centres'). The planes turn every neighbour the predictions read into a
 /// contiguous slice.
+#[derive(Default)]
 struct Planes {
     h: usize,
     l: Vec<i32>,
@@ -259,44 +260,39 @@ struct Planes {
     range: (i32, i32),
 }
 
-/// Plane `p` of a `side²` grid: the samples with `i ≡ i0`, `j ≡ j0`
-/// (mod 2), through `f`.
-fn plane<T>(grid: &[i16], side: usize, (i0, j0): (usize, usize), f: impl Fn(i16) -> T) -> Vec<T> {
-    let mut out = Vec::with_capacity((side / 2 + 1) * (side / 2 + 1));
+/// Fill `out` with a plane of a `side²` grid's indices: the samples with
+/// `i ≡ i0`, `j ≡ j0` (mod 2).
+fn plane(out: &mut Vec<i32>, grid: &[i16], side: usize, (i0, j0): (usize, usize), q: &Quantiser) {
+    out.clear();
     for j in (j0..side).step_by(2) {
         let row = &grid[j * side..][..side];
         for i in (i0..side).step_by(2) {
-            out.push(f(row[i]));
+            out.push(q.index(row[i]));
         }
     }
-    out
 }
 
 impl Planes {
-    /// The planes of a grid's indices through `index`: all four
-    /// (`new`: the encoder's source), or LOD 1 with the others zero.
-    fn new(grid: &[i16], side: usize, quant: &Quantiser, new: bool) -> Planes {
+    /// Fill the planes with a grid's indices: all four (`new`: the
+    /// encoder's source), or LOD 1 (the others are written before they are
+    /// read). Buffers keep their allocation from record to record.
+    fn fill(&mut self, grid: &[i16], side: usize, quant: &Quantiser, new: bool) {
         let h = side / 2;
-        let index = |v| quant.index(v);
-        let or_zero = |(i0, j0): (usize, usize), n: usize| {
-            if new {
-                plane(grid, side, (i0, j0), index)
-            } else {
-                vec![0; n]
-            }
-        };
-        Planes {
-            h,
-            l: plane(grid, side, (0, 0), index),
-            mh: or_zero((1, 0), (h + 1) * h),
-            mv: or_zero((0, 1), h * (h + 1)),
-            c: or_zero((1, 1), h * h),
-            zh: vec![0; (h + 1) * h],
-            zv: vec![0; h * (h + 1)],
-            eh: vec![0; (h + 1) * h],
-            ev: vec![0; h * (h + 1)],
-            range: quant.range(),
+        (self.h, self.range) = (h, quant.range());
+        plane(&mut self.l, grid, side, (0, 0), quant);
+        if new {
+            plane(&mut self.mh, grid, side, (1, 0), quant);
+            plane(&mut self.mv, grid, side, (0, 1), quant);
+            plane(&mut self.c, grid, side, (1, 1), quant);
+        } else {
+            self.mh.resize((h + 1) * h, 0);
+            self.mv.resize(h * (h + 1), 0);
+            self.c.resize(h * h, 0);
         }
+        self.zh.resize((h + 1) * h, 0);
+        self.zv.resize(h * (h + 1), 0);
+        self.eh.resize((h + 1) * h, 0);
+        self.ev.resize(h * (h + 1), 0);
     }
 
     /// Predictions of the midpoints along `i`, from LOD 1: the cubic
@@ -461,6 +457,26 @@ fn midpoint_row(
     Ok(())
 }
 
+/// A coding's buffers: the planes and the predictions of the midpoints
+/// along `i` (then of the centres) and along `j`, kept per thread from
+/// record to record ([`with_scratch`]).
+#[derive(Default)]
+struct Scratch {
+    planes: Planes,
+    ph: Preds,
+    pv: Preds,
+    /// The decoder's rANS words.
+    words: Vec<u32>,
+}
+
+/// Run `f` with this thread's [`Scratch`].
+fn with_scratch<T>(f: impl FnOnce(&mut Scratch) -> T) -> T {
+    thread_local! {
+        static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
+    }
+    SCRATCH.with_borrow_mut(f)
+}
+
 /// Code the new samples of the planes in the format's order (pass 1, the
 /// edge midpoints row-major over the grid: a row of `mh`, then a row of
 /// `mv`; pass 2, the cell centres row-major), each predicted from the
@@ -468,27 +484,23 @@ fn midpoint_row(
 /// there (the source's when encoding) and returns the zig-zagged residual.
 /// Each plane's predictions are computed in loops of their own before the
 /// samples are coded: only the coder's loop is sequential.
-fn walk(code: &mut impl Sampler, g: &mut Planes) -> Result<(), CodecError> {
+fn walk(code: &mut impl Sampler, s: &mut Scratch) -> Result<(), CodecError> {
+    let Scratch {
+        planes: g, ph, pv, ..
+    } = s;
     let h = g.h;
     let range = g.range;
-    let (mut ph, mut pv) = (Preds::new((h + 1) * h), Preds::new(h * (h + 1)));
-    g.predict_mh(&mut ph);
-    g.predict_mv(&mut pv);
+    ph.resize((h + 1) * h);
+    pv.resize(h * (h + 1));
+    g.predict_mh(ph);
+    g.predict_mv(pv);
     for y in 0..=h {
-        midpoint_row(
-            code,
-            &mut ph,
-            range,
-            (y * h, h),
-            &mut g.mh,
-            &mut g.zh,
-            &mut g.eh,
-        )?;
+        midpoint_row(code, ph, range, (y * h, h), &mut g.mh, &mut g.zh, &mut g.eh)?;
         if y < h {
             let at = y * (h + 1);
             midpoint_row(
                 code,
-                &mut pv,
+                pv,
                 range,
                 (at, h + 1),
                 &mut g.mv,
@@ -497,12 +509,10 @@ fn walk(code: &mut impl Sampler, g: &mut Planes) -> Result<(), CodecError> {
             )?;
         }
     }
-    let mut pc = ph;
-    pc.p0.truncate(h * h);
-    pc.p32.truncate(h * h);
-    pc.act.truncate(h * h);
-    pc.meta.truncate(h * h);
-    g.predict_c(&mut pc);
+    // The centres' predictions in the midpoints' buffer.
+    let pc = ph;
+    pc.resize(h * h);
+    g.predict_c(pc);
     let pre = pc.p0.iter().zip(&pc.meta).zip(&pc.act);
     for (q, ((&p0, &meta), &act)) in g.c.iter_mut().zip(pre) {
         (*q, _) = put(code, range, p0, meta, class(act), *q)?;
@@ -539,13 +549,15 @@ impl Sampler for Residuals {
 /// max error `k`: the record payload.
 pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
     let quant = Quantiser::new(k);
-    let mut g = Planes::new(grid, w + 1, &quant, true);
     let mut res = Residuals {
         syms: Vec::with_capacity(elevation_new_samples(w)),
         hist: [[[0u32; SYMBOLS]; CENTRES]; CONTEXTS],
     };
-    // Source indices are in range and every residual is exact.
-    walk(&mut res, &mut g).unwrap_or_else(|e| unreachable!("encoding in-range indices: {e}"));
+    with_scratch(|s| {
+        s.planes.fill(grid, w + 1, &quant, true);
+        // Source indices are in range and every residual is exact.
+        walk(&mut res, s).unwrap_or_else(|e| unreachable!("encoding in-range indices: {e}"));
+    });
     let scales: [u8; CONTEXTS] = std::array::from_fn(|c| best_scale(&res.hist[c]));
     let models: [&CostedModel; CONTEXTS * CENTRES] =
         std::array::from_fn(|m| encoder_model(scales[m / CENTRES], m % CENTRES));
@@ -637,33 +649,45 @@ impl Sampler for Decoder {
 /// decoded samples; every new sample ends within `k` of its source value.
 pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
     let side = w + 1;
-    let (scales, coder) = open(raw, CONTEXTS, side, grid)?;
-    let mut dec = Decoder {
-        coder,
-        models: std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES)),
-        uniform: std::array::from_fn(|w| Pow2Uniform::new(w as u32)),
-    };
     let quant = Quantiser::new(k);
-    let mut g = Planes::new(grid, side, &quant, false);
-    walk(&mut dec, &mut g)?;
-    if !dec.coder.is_empty() {
-        return Err(CodecError::Rans("words left after the last sample".into()));
-    }
-    // Rows of odd columns hold h samples, of even columns h + 1.
-    let h = g.h;
-    for ((i0, j0), plane, len) in [
-        ((1, 0), &g.mh, h),
-        ((0, 1), &g.mv, h + 1),
-        ((1, 1), &g.c, h),
-    ] {
-        let rows = grid.chunks_exact_mut(side).skip(j0).step_by(2);
-        for (row, q) in rows.zip(plane.chunks_exact(len)) {
-            for (x, &q) in q.iter().enumerate() {
-                row[i0 + 2 * x] = quant.value(q);
+    with_scratch(|s| {
+        let (scales, coder) = open(raw, CONTEXTS, side, grid, std::mem::take(&mut s.words))?;
+        let mut dec = Decoder {
+            coder,
+            models: std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES)),
+            uniform: std::array::from_fn(|w| Pow2Uniform::new(w as u32)),
+        };
+        s.planes.fill(grid, side, &quant, false);
+        walk(&mut dec, s)?;
+        if !dec.coder.is_empty() {
+            return Err(CodecError::Rans("words left after the last sample".into()));
+        }
+        // The words' buffer, emptied, for the next record.
+        s.words = dec.coder.into_raw_parts().0;
+        // The new samples into the grid (every index is in the range: the
+        // coder checked each): on even rows the midpoints along `i` between
+        // the LOD 1 samples, odd rows whole, midpoints along `j` and centres
+        // in turn.
+        let g = &s.planes;
+        let h = g.h;
+        let value = |q: i32| quant.value(q);
+        for (j, row) in grid.chunks_exact_mut(side).enumerate() {
+            let y = j / 2;
+            if j.is_multiple_of(2) {
+                for (x, &q) in g.mh[y * h..][..h].iter().enumerate() {
+                    row[2 * x + 1] = value(q);
+                }
+            } else {
+                let (mv, c) = (&g.mv[y * (h + 1)..][..h + 1], &g.c[y * h..][..h]);
+                for ((pair, &a), &b) in row.chunks_exact_mut(2).zip(mv).zip(c) {
+                    pair[0] = value(a);
+                    pair[1] = value(b);
+                }
+                row[2 * h] = value(mv[h]);
             }
         }
-    }
-    Ok(())
+        Ok(())
+    })
 }
 
 #[cfg(test)]
