@@ -375,15 +375,27 @@ impl Planes {
                 p32[x] = (el[x] + er[x] + eu[x] + ed[x]) >> 3;
             }
             let (l, r, u, d) = (&lr[..h], &lr[1..][..h], &up[..h], &dn[..h]);
-            let far = (h >= 3 && y >= 1 && y + 2 <= h).then(|| (mh(y - 1), mh(y + 2)));
-            for x in 0..h {
-                let far = match far {
-                    Some((fu, fd)) if x >= 1 && x + 2 <= h => {
-                        Some([lr[x - 1], lr[x + 2], fu[x], fd[x]])
-                    }
-                    _ => None,
-                };
-                (p32[x], act[x]) = centre([l[x], r[x], u[x], d[x]], act[x], p32[x], far);
+            let mean = |x: usize, (p32, act): (&mut i32, &mut u32)| {
+                (*p32, *act) = centre([l[x], r[x], u[x], d[x]], *act, *p32, None);
+            };
+            if h >= 3 && y >= 1 && y + 2 <= h {
+                // The cubics for x in 1..=h − 2, the means at the border.
+                let n = h - 2;
+                let (fu, fd) = (&mh(y - 1)[1..][..n], &mh(y + 2)[1..][..n]);
+                let (ll, rr) = (&lr[..n], &lr[3..][..n]);
+                let (li, ri, ui, di) = (&l[1..][..n], &r[1..][..n], &u[1..][..n], &d[1..][..n]);
+                let (pi, ai) = (&mut p32[1..][..n], &mut act[1..][..n]);
+                for k in 0..n {
+                    let far = Some([ll[k], rr[k], fu[k], fd[k]]);
+                    (pi[k], ai[k]) = centre([li[k], ri[k], ui[k], di[k]], ai[k], pi[k], far);
+                }
+                for x in [0, h - 1] {
+                    mean(x, (&mut p32[x], &mut act[x]));
+                }
+            } else {
+                for (x, pa) in p32.iter_mut().zip(act.iter_mut()).enumerate() {
+                    mean(x, pa);
+                }
             }
         }
         p.finish(self.range);
