@@ -40,7 +40,7 @@
 //! is sequential; the payloads are byte for byte those of the grid walk
 //! this replaced (`payloads_match_the_released_format`).
 
-use super::elevation::{bucket, chunks, open, rans_encode, Quantiser, DIRECT};
+use super::elevation::{bucket, open, rans_encode, Quantiser, DIRECT};
 use super::model::{CompactDecoder, Pow2Uniform};
 use super::{unzigzag32, zigzag32, CodecError};
 use crate::lod::elevation_new_samples;
@@ -645,13 +645,18 @@ impl Sampler for Decoder {
         if b < DIRECT as usize {
             return Ok(b as u32);
         }
+        // The low bits in `chunks(extra)`'s order, unrolled: `extra ≤ 16`
+        // (`MAX_LEN`), so one chunk of `extra` bits, or 8 and `extra − 8`.
         let extra = (b - DIRECT as usize + 4) as u32;
-        let mut bits = 0u32;
-        for (shift, width) in chunks(extra) {
-            let v = coder
-                .decode_symbol(self.uniform[width as usize])
+        let low = extra.min(8);
+        let mut bits = coder
+            .decode_symbol(self.uniform[low as usize])
+            .map_err(rans)? as u32;
+        if extra > 8 {
+            let high = coder
+                .decode_symbol(self.uniform[(extra - 8) as usize])
                 .map_err(rans)?;
-            bits |= (v as u32) << shift;
+            bits |= (high as u32) << 8;
         }
         Ok((1u32 << extra) | bits)
     }
