@@ -209,7 +209,7 @@ struct Preds {
     /// `centre · 2 + flip`: the prediction lies 0, ¼ or ½ of an index
     /// from `p0` (the model's centre), below it (`flip`: the residual's
     /// sign is flipped).
-    meta: Vec<u8>,
+    meta: Vec<u32>,
 }
 
 impl Preds {
@@ -229,9 +229,9 @@ impl Preds {
             let p = (p32 + half) >> FRAC_BITS;
             let frac = p32 - (p << FRAC_BITS); // −16..=15
             let f = frac.unsigned_abs();
-            let centre = (f >= 4) as u8 + (f >= 12) as u8;
+            let centre = (f >= 4) as u32 + (f >= 12) as u32;
             *p0 = p.clamp(lo, hi);
-            *meta = centre << 1 | (frac < 0) as u8;
+            *meta = centre << 1 | (frac < 0) as u32;
         }
     }
 }
@@ -410,7 +410,7 @@ fn put(
     code: &mut impl Sampler,
     (lo, hi): (i32, i32),
     p0: i32,
-    meta: u8,
+    meta: u32,
     c: usize,
     v: i32,
 ) -> Result<(i32, u32), CodecError> {
