@@ -264,11 +264,8 @@ struct Planes {
 /// `i ≡ i0`, `j ≡ j0` (mod 2).
 fn plane(out: &mut Vec<i32>, grid: &[i16], side: usize, (i0, j0): (usize, usize), q: &Quantiser) {
     out.clear();
-    for j in (j0..side).step_by(2) {
-        let row = &grid[j * side..][..side];
-        for i in (i0..side).step_by(2) {
-            out.push(q.index(row[i]));
-        }
+    for row in grid.chunks_exact(side).skip(j0).step_by(2) {
+        out.extend(row[i0..].iter().step_by(2).map(|&v| q.index(v)));
     }
 }
 
@@ -330,11 +327,11 @@ impl Planes {
             );
             if y >= 1 && y + 2 <= h {
                 let (a, d) = (row(y - 1), row(y + 2));
-                for x in 0..=h {
+                for x in 0..h + 1 {
                     (p32[x], act[x]) = midpoint(b[x], c[x], Some((a[x], d[x])));
                 }
             } else {
-                for x in 0..=h {
+                for x in 0..h + 1 {
                     (p32[x], act[x]) = midpoint(b[x], c[x], None);
                 }
             }
