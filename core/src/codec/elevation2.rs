@@ -146,8 +146,10 @@ struct Pred {
     p0: i32,
     /// The prediction lies below `p0`: the residual's sign is flipped.
     flip: bool,
-    /// Model: `context · CENTRES + centre`.
-    model: usize,
+    /// Context class, `0..CONTEXTS`.
+    class: usize,
+    /// Model centre, `0..CENTRES`.
+    centre: usize,
 }
 
 /// The bit length of an activity, capped to a context class.
@@ -415,7 +417,8 @@ fn put(
     let p = Pred {
         p0,
         flip,
-        model: c * CENTRES + (meta >> 1) as usize,
+        class: c,
+        centre: (meta >> 1) as usize,
     };
     let z = code.sample(p, v)?;
     // |r| < 2¹⁶ for every symbol (`MAX_LEN`) and p₀ is in the i16 index
@@ -457,7 +460,8 @@ fn midpoint_row(
     let mut prev = 0u32;
     let pre = p0.iter().zip(meta).zip(act.iter()).zip(p32);
     for (((q, zs), es), (((&p0, &meta), &act), &p32)) in q.iter_mut().zip(zs).zip(es).zip(pre) {
-        let (v, z) = put(code, range, p0, meta, class(act.saturating_add(prev)), *q)?;
+        // act < 2²⁰ and prev < 2¹⁷: no overflow.
+        let (v, z) = put(code, range, p0, meta, class(act + prev), *q)?;
         *q = v;
         *zs = z;
         *es = (v << FRAC_BITS) - p32;
@@ -548,8 +552,8 @@ impl Sampler for Residuals {
     fn sample(&mut self, p: Pred, v: i32) -> Result<u32, CodecError> {
         let r = v - p.p0;
         let z = zigzag32(if p.flip { r } else { -r });
-        self.hist[p.model / CENTRES][p.model % CENTRES][bucket(z).0] += 1;
-        self.syms.push((z, p.model as u8));
+        self.hist[p.class][p.centre][bucket(z).0] += 1;
+        self.syms.push((z, (p.class * CENTRES + p.centre) as u8));
         Ok(z)
     }
 }
@@ -626,10 +630,12 @@ fn best_scale(hist: &[[u32; SYMBOLS]; CENTRES]) -> u8 {
     best as u8
 }
 
-/// The decoder: the rANS stack and the record's models.
+/// The decoder: the rANS stack and the record's models, per context class
+/// and centre (a fourth centre, never used, repeats the third, so that a
+/// centre masked to two bits needs no bounds check).
 struct Decoder {
     coder: DefaultAnsCoder,
-    models: [&'static CompactDecoder<SYMBOLS>; CONTEXTS * CENTRES],
+    models: [[&'static CompactDecoder<SYMBOLS>; 4]; CONTEXTS],
     uniform: [Pow2Uniform; 9],
 }
 
@@ -638,7 +644,8 @@ impl Sampler for Decoder {
     fn sample(&mut self, p: Pred, _: i32) -> Result<u32, CodecError> {
         let rans = |e| CodecError::Rans(format!("{e:?}"));
         let coder = &mut self.coder;
-        let b = coder.decode_symbol(self.models[p.model]).map_err(rans)?;
+        let model = self.models[p.class][p.centre & 3];
+        let b = coder.decode_symbol(model).map_err(rans)?;
         if b < DIRECT as usize {
             return Ok(b as u32);
         }
@@ -668,7 +675,9 @@ pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), Code
         let (scales, coder) = open(raw, CONTEXTS, side, grid, std::mem::take(&mut s.words))?;
         let mut dec = Decoder {
             coder,
-            models: std::array::from_fn(|m| decoder_model(scales[m / CENTRES], m % CENTRES)),
+            models: std::array::from_fn(|c| {
+                std::array::from_fn(|m| decoder_model(scales[c], m.min(CENTRES - 1)))
+            }),
             uniform: std::array::from_fn(|w| Pow2Uniform::new(w as u32)),
         };
         s.planes.fill(grid, side, &quant, false);
