@@ -129,7 +129,7 @@ const SIGNS: [[f32; 3]; 4] = [
 
 /// The four texels of a cell from its mean and dequantised YCoCg details
 /// `d[channel][band]`.
-#[inline]
+#[inline(always)]
 fn reconstruct(m: Rgb, d: &[[f32; 3]; 3]) -> [Rgb; 4] {
     let mut out = [[0u8; 3]; 4];
     for (t, s) in SIGNS.iter().enumerate() {
