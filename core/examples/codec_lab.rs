@@ -1,7 +1,8 @@
 //! Measures elevation predictor / entropy-coder variants on a database's
 //! decoded grids (for choosing the codec): `cargo run --release -p
-//! planet-core --example codec_lab -- DB [k]`; `DB decode` measures the
-//! decode rate of a database's own records, `DB payload k` the payload size
+//! planet-core --example codec_lab -- DB [k]`; `DB decode [STRIDE]`
+//! measures the decode rate of a database's own records (every STRIDE-th
+//! in the traversal, for databases too large to hold), `DB payload k` the payload size
 //! (and a digest of the payloads, which a change of implementation that
 //! keeps the format keeps) of each quantised codec on an exact database's
 //! grids; `synthetic AMP` the id 2 decode rate of noise of amplitude AMP
@@ -162,12 +163,12 @@ fn cpu_ns() -> u64 {
 
 /// Decode rate of the database's own elevation records, samples per
 /// CPU-second (records read once, decoded repeatedly from memory).
-fn decode_rate(path: &str) {
+fn decode_rate(path: &str, stride: usize) {
     let db = DbFile::open(path.as_ref()).unwrap();
     let h = db.header.clone();
     let w = h.elevation.block_width as usize;
     let side = w + 1;
-    let mut jobs = Vec::new();
+    let (mut jobs, mut seen) = (Vec::new(), 0usize);
     for (fi, face) in Face::ALL.iter().enumerate() {
         let mut full = vec![0i16; side * side];
         lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
@@ -183,7 +184,10 @@ fn decode_rate(path: &str) {
                 lod::split_elevation(&grid, w, k, &mut cg);
                 stack.push((b.child(k), *c, cg));
             }
-            jobs.push((bytes, first));
+            seen += 1;
+            if seen % stride == 0 {
+                jobs.push((bytes, first));
+            }
         }
     }
     let n = jobs.len() * lod::elevation_new_samples(w);
@@ -322,7 +326,8 @@ fn main() {
         return synthetic(args.get(2).map_or(0, |s| s.parse().unwrap()));
     }
     if args.get(2).map(String::as_str) == Some("decode") {
-        return decode_rate(&args[1]);
+        let stride = args.get(3).map_or(1, |s| s.parse().unwrap());
+        return decode_rate(&args[1], stride);
     }
     if args.get(2).map(String::as_str) == Some("payload") {
         let k = args.get(3).map_or(0, |s| s.parse().unwrap());
