@@ -7,7 +7,7 @@
 //! keeps the format keeps) of each quantised codec on an exact database's
 //! grids; `synthetic AMP` the id 2 decode rate of noise of amplitude AMP
 //! (0: flat, every residual zero: the decoder's cost without branch misses).
-use planet_core::codec::ElevationCodec;
+use planet_core::codec::{ElevationCodec, Payload};
 use planet_core::format::{parse_record, DbFile};
 use planet_core::lod;
 use planet_core::{BlockId, Face};
@@ -237,27 +237,7 @@ fn payload_sizes(path: &str, k: u16) {
             }
             h.finish()
         };
-        // Each grid's LOD 1 (the source: the quantisation is pointwise).
-        let firsts: Vec<Vec<i16>> = gs
-            .iter()
-            .map(|g| {
-                let mut f = vec![0i16; side * side];
-                lod::elevation_place_first_lod(&lod::elevation_first_lod(g, w), w, &mut f);
-                f
-            })
-            .collect();
-        let mut grid = vec![0i16; side * side];
-        let (start, mut runs) = (cpu_ns(), 0);
-        while cpu_ns() - start < 2_000_000_000 {
-            for (p, f) in payloads.iter().zip(&firsts) {
-                grid.copy_from_slice(f);
-                codec
-                    .decode(&p.bytes, p.raw_len as usize, w, &mut grid)
-                    .unwrap();
-            }
-            runs += 1;
-        }
-        let dec = runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9);
+        let dec = decode_payloads(codec, &payloads, &gs, w);
         println!(
             "{} k {k}: {:.4} B per new sample ({} grids, digest {digest:016x}), encode {:.1} M, decode {:.1} M samples per CPU-second",
             codec.name(),
@@ -267,6 +247,38 @@ fn payload_sizes(path: &str, k: u16) {
             dec / 1e6
         );
     }
+}
+
+/// New samples per CPU-second decoding `payloads` of `grids` (full, each
+/// decoded from its own LOD 1: the quantisation is pointwise) for 2 s.
+fn decode_payloads(
+    codec: ElevationCodec,
+    payloads: &[Payload],
+    grids: &[Vec<i16>],
+    w: usize,
+) -> f64 {
+    let side = w + 1;
+    let firsts: Vec<Vec<i16>> = grids
+        .iter()
+        .map(|g| {
+            let mut f = vec![0i16; side * side];
+            lod::elevation_place_first_lod(&lod::elevation_first_lod(g, w), w, &mut f);
+            f
+        })
+        .collect();
+    let n = (grids.len() * lod::elevation_new_samples(w)) as f64;
+    let mut grid = vec![0i16; side * side];
+    let (start, mut runs) = (cpu_ns(), 0);
+    while cpu_ns() - start < 2_000_000_000 {
+        for (p, f) in payloads.iter().zip(&firsts) {
+            grid.copy_from_slice(f);
+            codec
+                .decode(&p.bytes, p.raw_len as usize, w, &mut grid)
+                .unwrap();
+        }
+        runs += 1;
+    }
+    runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9)
 }
 
 /// Decode rate of synthetic grids: `flat` (every residual 0) or `noise`
@@ -291,28 +303,9 @@ fn synthetic(amp: i32) {
         .collect();
     let codec = ElevationCodec::Laplace { max_error: 0 };
     let payloads: Vec<_> = gs.iter().map(|g| codec.encode(g, w)).collect();
-    let firsts: Vec<Vec<i16>> = gs
-        .iter()
-        .map(|g| {
-            let mut f = vec![0i16; side * side];
-            lod::elevation_place_first_lod(&lod::elevation_first_lod(g, w), w, &mut f);
-            f
-        })
-        .collect();
     let n = (gs.len() * lod::elevation_new_samples(w)) as f64;
     let bytes: usize = payloads.iter().map(|p| p.bytes.len()).sum();
-    let mut grid = vec![0i16; side * side];
-    let (start, mut runs) = (cpu_ns(), 0);
-    while cpu_ns() - start < 2_000_000_000 {
-        for (p, f) in payloads.iter().zip(&firsts) {
-            grid.copy_from_slice(f);
-            codec
-                .decode(&p.bytes, p.raw_len as usize, w, &mut grid)
-                .unwrap();
-        }
-        runs += 1;
-    }
-    let dec = runs as f64 * n / ((cpu_ns() - start) as f64 * 1e-9);
+    let dec = decode_payloads(codec, &payloads, &gs, w);
     println!(
         "amp {amp}: {:.3} B/sample, decode {:.1} M samples per CPU-second",
         bytes as f64 / n,
