@@ -482,10 +482,18 @@ struct Scratch {
     words: Vec<u32>,
 }
 
-/// Run `f` with this thread's [`Scratch`].
-fn with_scratch<T>(f: impl FnOnce(&mut Scratch) -> T) -> T {
+/// Widest block whose buffers a thread keeps (about 1 MB at 256); a
+/// wider one (the format allows 4096) gets buffers of its own, freed after.
+const SCRATCH_MAX_WIDTH: usize = 256;
+
+/// Run `f` with this thread's [`Scratch`] (blocks of width `w` up to
+/// [`SCRATCH_MAX_WIDTH`]) or a fresh one.
+fn with_scratch<T>(w: usize, f: impl FnOnce(&mut Scratch) -> T) -> T {
     thread_local! {
         static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
+    }
+    if w > SCRATCH_MAX_WIDTH {
+        return f(&mut Scratch::default());
     }
     SCRATCH.with_borrow_mut(f)
 }
@@ -566,7 +574,7 @@ pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
         syms: Vec::with_capacity(elevation_new_samples(w)),
         hist: [[[0u32; SYMBOLS]; CENTRES]; CONTEXTS],
     };
-    with_scratch(|s| {
+    with_scratch(w, |s| {
         s.planes.fill(grid, w + 1, &quant, true);
         // Source indices are in range and every residual is exact.
         walk(&mut res, s).unwrap_or_else(|e| unreachable!("encoding in-range indices: {e}"));
@@ -671,7 +679,7 @@ impl Sampler for Decoder {
 pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
     let side = w + 1;
     let quant = Quantiser::new(k);
-    with_scratch(|s| {
+    with_scratch(w, |s| {
         let (scales, coder) = open(raw, CONTEXTS, side, grid, std::mem::take(&mut s.words))?;
         let mut dec = Decoder {
             coder,
