@@ -670,8 +670,16 @@ impl Client {
                 if r.forced {
                     return true;
                 }
-                // Colour blocks are culled through the elevation block of
-                // the same id when there is one.
+                // A colour record textures the elevation blocks under its
+                // id, whose node's bounds stay in view well after every
+                // block under it has left: on a low, fast flight, colour
+                // answers for the ground passing under the camera arrived
+                // for nothing.
+                if r.tree == Tree::Colour && !tree.elevation().leaves_in_view(&r.block, pv) {
+                    return false;
+                }
+                // Elevation blocks are culled by their bounds (colour ones
+                // also by those of the elevation block of the same id).
                 let bounds = tree
                     .tree(Tree::Elevation)
                     .and_then(|t| t.get(&r.block))

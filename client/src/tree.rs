@@ -40,7 +40,7 @@
 //!   merge while the colour block with the same id is split. Hence every
 //!   colour node has an elevation node with the same id.
 
-use crate::visibility::BlockBounds;
+use crate::visibility::{BlockBounds, View};
 use planet_core::codec::{CodecError, TreeCodec};
 use planet_core::format::{self, ChildRef, FormatError, Header, Tree};
 use planet_core::lod::{self, Rgb};
@@ -333,6 +333,9 @@ pub struct LinkedTree {
     nodes: FastMap<BlockId, Node>,
 }
 
+/// Most nodes [`LinkedTree::leaves_in_view`] visits before it answers yes.
+pub const LEAF_TEST_BUDGET: usize = 64;
+
 impl LinkedTree {
     /// The node of `id`, if present.
     pub fn get(&self, id: &BlockId) -> Option<&Node> {
@@ -359,6 +362,40 @@ impl LinkedTree {
         (0..=id.level)
             .rev()
             .find_map(|l| self.nodes.get(&id.ancestor(l)))
+    }
+
+    /// Whether a leaf of the subtree at `id` may be visible in `view`:
+    /// split nodes are culled by their bounds on the way down (a node's
+    /// bounds hold its subtree's), so a node whose own bounds are visible
+    /// while every leaf under it is culled answers no. Conservative: yes
+    /// when there is no node of that id or a node has no bounds, and after
+    /// [`LEAF_TEST_BUDGET`] nodes.
+    pub fn leaves_in_view(&self, id: &BlockId, view: &View) -> bool {
+        if !self.nodes.contains_key(id) {
+            return true;
+        }
+        let mut stack = vec![*id];
+        let mut visited = 0;
+        while let Some(id) = stack.pop() {
+            visited += 1;
+            if visited > LEAF_TEST_BUDGET {
+                return true;
+            }
+            let Some(n) = self.nodes.get(&id) else {
+                continue;
+            };
+            let Some(b) = n.bounds.as_ref() else {
+                return true;
+            };
+            if !view.is_visible(b) {
+                continue;
+            }
+            if !n.split {
+                return true;
+            }
+            stack.extend(id.children());
+        }
+        false
     }
 
     /// The neighbour across `edge` (Alg. 4.1 by lookup): the deepest existing

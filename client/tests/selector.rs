@@ -247,7 +247,8 @@ proptest! {
 /// some colour leaves lie over split elevation blocks; seeded cameras about
 /// each such block (an eye within a few block radii, any direction, a
 /// field of view of 1–90°) must meet the case (asserted: the test is not
-/// vacuous; 560 of 32 000 probes meet it) and never request the leaf. The
+/// vacuous; 560 of 32 000 probes meet it) and never request the leaf, and
+/// the request filter's leaf test answers no there. The
 /// selection before e01dd2f, whose colour gate was the elevation block's
 /// visibility, fails here ("over culled children requested").
 #[test]
@@ -327,11 +328,28 @@ fn colour_leaf_over_culled_children_is_not_requested() {
                     .and_then(|n| n.bounds.as_ref())
                     .is_some_and(|b| view.is_visible(b))
             };
+            // The request filter's test of the leaves under a colour block
+            // (`LinkedTree::leaves_in_view`) agrees: yes with a visible leaf
+            // child, no with every child culled.
+            let leaf_child_visible = id
+                .children()
+                .iter()
+                .any(|c| et.get(c).is_some_and(|n| !n.split) && visible(c));
+            if leaf_child_visible {
+                assert!(
+                    et.leaves_in_view(&id, &view),
+                    "{id:?}: a leaf child is visible"
+                );
+            }
             if !(0..=id.level).all(|l| visible(&id.ancestor(l)))
                 || id.children().iter().any(visible)
             {
                 continue;
             }
+            assert!(
+                !et.leaves_in_view(&id, &view),
+                "{id:?}: every child is culled"
+            );
             let r = c.refiner(&view);
             let cn = ct.get(&id).expect("colour leaf");
             let m = r.measure(
