@@ -670,21 +670,21 @@ impl Client {
                 if r.forced {
                     return true;
                 }
-                // A colour record textures the elevation blocks under its
-                // id, whose node's bounds stay in view well after every
-                // block under it has left: on a low, fast flight, colour
-                // answers for the ground passing under the camera arrived
-                // for nothing.
-                if r.tree == Tree::Colour && !tree.elevation().leaves_in_view(&r.block, pv) {
-                    return false;
-                }
-                // Elevation blocks are culled by their bounds (colour ones
-                // also by those of the elevation block of the same id).
+                // An elevation block is culled by its bounds. A colour record
+                // textures the elevation leaves under its id, whose node's
+                // bounds stay in view well after every block under it has
+                // left (on a low, fast flight, colour answers for the ground
+                // passing under the camera arrived for nothing): it is
+                // culled by those leaves (the walk starts at that node).
                 let bounds = tree
                     .tree(Tree::Elevation)
                     .and_then(|t| t.get(&r.block))
                     .and_then(|n| n.bounds.as_ref());
-                if !bounds.is_none_or(|b| pv.is_visible(b)) {
+                let in_view = match r.tree {
+                    Tree::Elevation => bounds.is_none_or(|b| pv.is_visible(b)),
+                    Tree::Colour => tree.elevation().leaves_in_view(&r.block, pv),
+                };
+                if !in_view {
                     return false;
                 }
                 let (Some(later), Some(b)) = (&later, bounds) else {

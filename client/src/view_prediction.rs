@@ -15,10 +15,10 @@
 //! 6298's RTTVAR), so that most answers land before the predicted view. The
 //! client requests a visible block only if it is visible in the predicted
 //! view as well (a colour block: one of the elevation leaves it textures,
-//! [`crate::tree::LinkedTree::leaves_in_view`]). A static camera predicts itself, so nothing
-//! changes for it; the displacement is capped at half the height above the
-//! planet's minimum sphere and the turn at 30°, so a prediction never puts the
-//! eye inside the planet or flips the view.
+//! [`crate::tree::LinkedTree::leaves_in_view`]). A static camera predicts
+//! itself, so nothing changes for it; the displacement is capped at half the
+//! height above the planet's minimum sphere and the turn at 30°, so a
+//! prediction never puts the eye inside the planet or flips the view.
 
 use crate::visibility::Camera;
 use glam::DVec3;

@@ -436,7 +436,8 @@ fn put(
 
 /// Code one row of midpoints (`n` of them from `at` in the plane and its
 /// predictions): the activity gains the residuals of the midpoint two rows
-/// up (`up`, none on the first row) and of the one before it on its row.
+/// up (the plane's row before, none for the first row) and of the one
+/// before it on its row.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn midpoint_row(
