@@ -39,6 +39,66 @@ fn grids(path: &str) -> Vec<Vec<i16>> {
     out
 }
 
+/// Id 2 against id 3 at max error `k` on an exact database: top-down, id
+/// 3's LOD 1 from the parent's id 3 decode; payload bytes, and the largest
+/// error of id 3's decoded samples against the source.
+fn in_loop(path: &str, k: u16) {
+    let db = DbFile::open(path.as_ref()).unwrap();
+    let h = db.header.clone();
+    let w = h.elevation.block_width as usize;
+    let side = w + 1;
+    let (fixed, inloop) = (
+        ElevationCodec::Laplace { max_error: k },
+        ElevationCodec::InLoop { max_error: k },
+    );
+    let (mut b2, mut b3, mut n, mut worst) = (0usize, 0usize, 0usize, 0i32);
+    for (fi, face) in Face::ALL.iter().enumerate() {
+        let mut full = vec![0i16; side * side];
+        lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
+        let mut stack = vec![(
+            BlockId::root(*face),
+            h.elevation.root_records[fi],
+            full.clone(),
+            full,
+        )];
+        while let Some((b, r, mut src, mut dec)) = stack.pop() {
+            let bytes = db.read_record(&r).unwrap();
+            let rec = parse_record(&bytes, None).unwrap();
+            rec.decode_elevation(&h.elevation.codec, w, &mut src)
+                .unwrap();
+            b2 += fixed.encode(&src, w).bytes.len();
+            // The encoder's grid: the parent's decoded LOD 1, the source
+            // elsewhere.
+            let mut enc = src.clone();
+            for j in (0..side).step_by(2) {
+                for i in (0..side).step_by(2) {
+                    enc[j * side + i] = dec[j * side + i];
+                }
+            }
+            let p = inloop.encode(&enc, w);
+            b3 += p.bytes.len();
+            inloop
+                .decode(&p.bytes, p.raw_len as usize, w, &mut dec)
+                .unwrap();
+            for (a, b) in dec.iter().zip(&src) {
+                worst = worst.max((*a as i32 - *b as i32).abs());
+            }
+            n += 1;
+            for (kk, c) in rec.header.children.iter().enumerate() {
+                let mut cs = vec![0i16; side * side];
+                let mut cd = vec![0i16; side * side];
+                lod::split_elevation(&src, w, kk, &mut cs);
+                lod::split_elevation(&dec, w, kk, &mut cd);
+                stack.push((b.child(kk), *c, cs, cd));
+            }
+        }
+    }
+    println!(
+        "{n} records, k {k}: id 2 {b2} bytes, id 3 {b3} bytes ({:.4}×), id 3 max error {worst}",
+        b3 as f64 / b2 as f64
+    );
+}
+
 fn zz(v: i32) -> u32 {
     ((v << 1) ^ (v >> 31)) as u32
 }
@@ -321,6 +381,9 @@ fn main() {
     if args.get(2).map(String::as_str) == Some("decode") {
         let stride = args.get(3).map_or(1, |s| s.parse().unwrap());
         return decode_rate(&args[1], stride);
+    }
+    if args.get(2).map(String::as_str) == Some("inloop") {
+        return in_loop(&args[1], args.get(3).map_or(1, |s| s.parse().unwrap()));
     }
     if args.get(2).map(String::as_str) == Some("payload") {
         let k = args.get(3).map_or(0, |s| s.parse().unwrap());

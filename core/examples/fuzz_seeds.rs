@@ -46,6 +46,7 @@ fn main() -> std::io::Result<()> {
         for (name, c) in [
             ("quantised", ElevationCodec::Quantised { max_error: k }),
             ("laplace", ElevationCodec::Laplace { max_error: k }),
+            ("in-loop", ElevationCodec::InLoop { max_error: k }),
         ] {
             let rec = encode_record(Tree::Elevation, block, &[], &c.encode(&grid, w));
             std::fs::write(rec_dir.join(format!("seed-elevation-{name}-{k}")), rec)?;
@@ -72,6 +73,7 @@ fn main() -> std::io::Result<()> {
         (false, ElevationCodec::Quantised { max_error: 1 }),
         (true, ElevationCodec::Quantised { max_error: 1 }),
         (true, ElevationCodec::Laplace { max_error: 1 }),
+        (true, ElevationCodec::InLoop { max_error: 1 }),
     ] {
         let h = Header {
             datum: Datum::WGS84,
@@ -98,6 +100,7 @@ fn main() -> std::io::Result<()> {
         std::fs::write(
             hdr_dir.join(match codec {
                 ElevationCodec::Laplace { .. } => format!("seed-header-{with_colour}-laplace"),
+                ElevationCodec::InLoop { .. } => format!("seed-header-{with_colour}-in-loop"),
                 _ => format!("seed-header-{with_colour}"),
             }),
             h.encode(),

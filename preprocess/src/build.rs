@@ -79,13 +79,15 @@ pub struct BuildOptions {
 pub enum ElevationChoice {
     /// Format v1's lossless lz4 byte planes (for comparisons).
     Legacy,
-    /// Quantised and rANS-coded (codec id 2) with this maximum error in
-    /// metres (0: the source's own exactness), rounded down to whole stored
-    /// units.
+    /// Quantised in the loop and rANS-coded (codec id 3) with this maximum
+    /// error in metres (0: the source's own exactness), rounded down to
+    /// whole stored units.
     MaxError(f64),
     /// The same with format v2's first elevation codec (id 1, for
     /// comparisons).
     MaxErrorId1(f64),
+    /// The same with id 2 (a fixed quantisation grid, for comparisons).
+    MaxErrorId2(f64),
 }
 
 /// The colour quality asked for (`planet-build build --colour-quality`).
@@ -145,7 +147,9 @@ impl CodecOptions {
     pub fn resolve(&self, scale: f64) -> Result<(ElevationCodec, ColourCodec), BuildError> {
         let e = match self.elevation {
             ElevationChoice::Legacy => ElevationCodec::Legacy,
-            ElevationChoice::MaxError(m) | ElevationChoice::MaxErrorId1(m) => {
+            ElevationChoice::MaxError(m)
+            | ElevationChoice::MaxErrorId1(m)
+            | ElevationChoice::MaxErrorId2(m) => {
                 let k = (m / scale).floor();
                 if !(m >= 0.0 && k <= planet_core::codec::elevation::MAX_ERROR_LIMIT as f64) {
                     return Err(BuildError::Options(format!(
@@ -154,10 +158,10 @@ impl CodecOptions {
                     )));
                 }
                 let max_error = k as u16;
-                if matches!(self.elevation, ElevationChoice::MaxErrorId1(_)) {
-                    ElevationCodec::Quantised { max_error }
-                } else {
-                    ElevationCodec::Laplace { max_error }
+                match self.elevation {
+                    ElevationChoice::MaxErrorId1(_) => ElevationCodec::Quantised { max_error },
+                    ElevationChoice::MaxErrorId2(_) => ElevationCodec::Laplace { max_error },
+                    _ => ElevationCodec::InLoop { max_error },
                 }
             }
         };
@@ -231,6 +235,9 @@ struct Ctx<'a> {
     out_path: &'a Path,
     scale: f64,
     elevation_codec: ElevationCodec,
+    /// The final codec's max error, stored units (the references' errors
+    /// include it whether or not this pass encodes with it).
+    max_error: u16,
     colour_codec: ColourCodec,
     bar: ProgressBar,
     e_records: AtomicU64,
@@ -293,7 +300,7 @@ fn build_block(ctx: &Ctx, b: BlockId, colour_here: bool) -> Result<Out, BuildErr
         // The codec moves a decoded sample by up to its max error: the
         // geometric error of every reference above includes it (once, as
         // errors are carried up), and the bounds widen by it.
-        let k = ctx.elevation_codec.max_error() as f64;
+        let k = ctx.max_error as f64;
         (
             Vec::new(),
             k * ctx.scale,
@@ -405,16 +412,59 @@ fn build_inner(
         b
     };
     let (elevation_codec, colour_codec) = opts.codecs.resolve(src.elevation_scale())?;
+    // Id 3 at a nonzero bound encodes against decoded parents, which this
+    // bottom-up pass does not have: the tree is written exact beside `out`
+    // first, then re-encoded top-down ([`crate::transcode`]).
+    let in_loop = matches!(elevation_codec, ElevationCodec::InLoop { max_error } if max_error > 0);
+    let exact_pass = if in_loop {
+        let mut name = out.file_name().unwrap_or_default().to_os_string();
+        name.push(".exact-pass");
+        out.with_file_name(name)
+    } else {
+        out.to_path_buf()
+    };
+    let first = if in_loop {
+        ElevationCodec::InLoop { max_error: 0 }
+    } else {
+        elevation_codec
+    };
+    let codecs = (first, elevation_codec.max_error(), colour_codec);
+    let mut stats = build_pass(src, plan, &exact_pass, codecs, &bar, colour)?;
+    if in_loop {
+        bar.set_position(0);
+        let t = crate::transcode::in_loop(&exact_pass, out, elevation_codec, &bar);
+        let _ = std::fs::remove_file(&exact_pass);
+        let t = t?;
+        stats.file_bytes = t.file_bytes;
+        stats.elevation_bytes = t.elevation_bytes;
+    }
+    bar.finish_and_clear();
+    stats.seconds = start.elapsed().as_secs_f64();
+    Ok(stats)
+}
+
+/// One bottom-up pass over `plan` into `out` with `(elevation codec, the
+/// final max error, colour codec)`: the whole build, or an in-loop build's
+/// exact first pass.
+fn build_pass(
+    src: &dyn GridSource,
+    plan: &Plan,
+    out: &Path,
+    (elevation_codec, max_error, colour_codec): (ElevationCodec, u16, ColourCodec),
+    bar: &ProgressBar,
+    colour: bool,
+) -> Result<BuildStats, BuildError> {
     let writer = DbWriter::create(out).map_err(|e| BuildError::write(out, e))?;
     let ctx = Ctx {
         elevation_codec,
+        max_error,
         colour_codec,
         src,
         plan,
         writer: Mutex::new(Some(writer)),
         out_path: out,
         scale: src.elevation_scale(),
-        bar,
+        bar: bar.clone(),
         e_records: AtomicU64::new(0),
         c_records: AtomicU64::new(0),
         e_bytes: AtomicU64::new(0),
@@ -433,7 +483,6 @@ fn build_inner(
             return Err(e);
         }
     };
-    ctx.bar.finish_and_clear();
     let min = roots
         .iter()
         .map(|r| r.elev_ref.min_elevation)
@@ -500,7 +549,7 @@ fn build_inner(
         file_bytes,
         elevation_bytes: ctx.e_bytes.load(Ordering::Relaxed),
         colour_bytes: ctx.c_bytes.load(Ordering::Relaxed),
-        seconds: start.elapsed().as_secs_f64(),
+        seconds: 0.0,
         max_level: plan.max_level(),
         colour_max_level: if colour { plan.colour_max_level() } else { 0 },
     })

@@ -91,6 +91,15 @@ pub enum BuildError {
     /// The worker thread pool cannot be built.
     #[error("thread pool: {0}")]
     ThreadPool(#[from] rayon::ThreadPoolBuildError),
+    /// The exact first pass of an in-loop build cannot be read back.
+    #[error("reading back the exact pass {path}")]
+    ExactPass {
+        /// The first pass's file.
+        path: PathBuf,
+        /// What was wrong.
+        #[source]
+        source: planet_core::format::FormatError,
+    },
 }
 
 impl BuildError {

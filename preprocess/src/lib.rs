@@ -32,6 +32,7 @@ pub mod inputs;
 pub mod plan;
 pub mod procedural;
 pub mod source;
+pub mod transcode;
 pub mod voidfill;
 
 pub use build::{

@@ -91,10 +91,12 @@ enum Cmd {
         /// quantisation).
         #[arg(long, default_value_t = 0.0)]
         max_error: f64,
-        /// Elevation codec: `quantised` (rANS, codec id 2, honours
-        /// --max-error), `quantised-1` (codec id 1, for comparisons) or
-        /// `legacy` (format v1's lossless lz4 byte planes, for comparisons).
-        #[arg(long, default_value = "quantised", value_parser = ["quantised", "quantised-1", "legacy"])]
+        /// Elevation codec: `quantised` (quantised in the loop, rANS, codec
+        /// id 3, honours --max-error; above 0 the tree is written exact
+        /// beside the output first, then re-encoded), `quantised-2` (id 2's
+        /// fixed grid) or `quantised-1` (id 1), for comparisons, or `legacy`
+        /// (format v1's lossless lz4 byte planes, for comparisons).
+        #[arg(long, default_value = "quantised", value_parser = ["quantised", "quantised-2", "quantised-1", "legacy"])]
         elevation_codec: String,
         /// Colour quality: a PSNR in dB against the source (Haar details,
         /// zstd), `lossless` (PTM deltas, zstd) or `lossless-legacy` (format
@@ -225,6 +227,8 @@ fn run() -> Result<()> {
                     ElevationChoice::Legacy
                 } else if elevation_codec == "quantised-1" {
                     ElevationChoice::MaxErrorId1(max_error)
+                } else if elevation_codec == "quantised-2" {
+                    ElevationChoice::MaxErrorId2(max_error)
                 } else {
                     ElevationChoice::MaxError(max_error)
                 },

@@ -52,6 +52,7 @@ fn db_record_exercise(data: &[u8]) {
             ElevationCodec::Quantised { max_error: 3 },
             ElevationCodec::Laplace { max_error: 0 },
             ElevationCodec::Laplace { max_error: 3 },
+            ElevationCodec::InLoop { max_error: 3 },
         ] {
             let mut grid = vec![0i16; (w + 1) * (w + 1)];
             let _ = rec.decode_elevation(&c, w, &mut grid);
@@ -70,6 +71,7 @@ fn db_record_exercise(data: &[u8]) {
     let _ = codec::elevation::decode(data, 16, 2, &mut grid);
     let _ = codec::elevation2::decode(data, 16, 2, &mut grid);
     let _ = codec::elevation2::decode(data, 16, 0, &mut grid);
+    let _ = codec::elevation2::decode_in_loop(data, 16, 2, &mut grid);
     let _ = codec::colour::decode(data, &[[7u8; 3]; 64], 16, &HaarParams::for_psnr(42.0));
 }
 

@@ -223,6 +223,14 @@ pub enum ElevationCodec {
         /// Largest absolute error of any decoded sample, stored units.
         max_error: u16,
     },
+    /// Id 3: id 2 with each residual quantised against its own prediction
+    /// (in the loop, [`elevation2`]): its encoder needs the
+    /// parent's decoded samples at LOD 1. At `max_error` 0 its payloads
+    /// are id 2's.
+    InLoop {
+        /// Largest absolute error of any decoded sample, stored units.
+        max_error: u16,
+    },
 }
 
 impl ElevationCodec {
@@ -232,6 +240,7 @@ impl ElevationCodec {
             ElevationCodec::Legacy => 0,
             ElevationCodec::Quantised { .. } => 1,
             ElevationCodec::Laplace { .. } => 2,
+            ElevationCodec::InLoop { .. } => 3,
         }
     }
 
@@ -239,9 +248,9 @@ impl ElevationCodec {
     pub fn param(&self) -> u16 {
         match self {
             ElevationCodec::Legacy => 0,
-            ElevationCodec::Quantised { max_error } | ElevationCodec::Laplace { max_error } => {
-                *max_error
-            }
+            ElevationCodec::Quantised { max_error }
+            | ElevationCodec::Laplace { max_error }
+            | ElevationCodec::InLoop { max_error } => *max_error,
         }
     }
 
@@ -254,6 +263,9 @@ impl ElevationCodec {
             }
             (2, k) if k <= elevation::MAX_ERROR_LIMIT => {
                 Ok(ElevationCodec::Laplace { max_error: k })
+            }
+            (3, k) if k <= elevation::MAX_ERROR_LIMIT => {
+                Ok(ElevationCodec::InLoop { max_error: k })
             }
             _ => Err(CodecError::Codec(format!(
                 "elevation codec id {id} with parameter {param}"
@@ -272,10 +284,14 @@ impl ElevationCodec {
             ElevationCodec::Legacy => "legacy-lz4-planes",
             ElevationCodec::Quantised { .. } => "quantised-rans",
             ElevationCodec::Laplace { .. } => "quantised-rans-laplace",
+            ElevationCodec::InLoop { .. } => "in-loop-rans-laplace",
         }
     }
 
-    /// Encode the LOD 0 samples of a full `(w+1)²` grid.
+    /// Encode the LOD 0 samples of a full `(w+1)²` grid of source values.
+    /// Id 3 at a nonzero max error predicts from decoded samples: the LOD 1
+    /// positions must then hold the parent's decoded samples (the decoder's
+    /// LOD 1), not the source's.
     pub fn encode(&self, grid: &[i16], w: usize) -> Payload {
         match self {
             ElevationCodec::Legacy => Payload::lz4(&legacy::encode_elevation(grid, w)),
@@ -285,6 +301,9 @@ impl ElevationCodec {
             }
             ElevationCodec::Laplace { max_error } => {
                 Payload::unlayered(elevation2::encode(grid, w, *max_error))
+            }
+            ElevationCodec::InLoop { max_error } => {
+                Payload::unlayered(elevation2::encode_in_loop(grid, w, *max_error))
             }
         }
     }
@@ -318,6 +337,10 @@ impl ElevationCodec {
             ElevationCodec::Laplace { max_error } => {
                 check_unlayered(payload, raw_len, elevation2::max_raw_len(w))?;
                 elevation2::decode(payload, w, *max_error, grid)
+            }
+            ElevationCodec::InLoop { max_error } => {
+                check_unlayered(payload, raw_len, elevation2::max_raw_len(w))?;
+                elevation2::decode_in_loop(payload, w, *max_error, grid)
             }
         }
     }
