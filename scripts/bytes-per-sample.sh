@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Bytes per sample of the record codecs (docs/BENCHMARKS.md "Bytes per
 # sample"): builds each database with the legacy codecs and the format v2
-# ones (elevation ids 1 and 2), prints a table of bytes per sample from
+# ones (elevation ids 1, 2 and 3), prints a table of bytes per sample from
 # `planet-build inspect --json`
 # and the error against the source from `planet-build verify --json` with the
 # build's source options.
@@ -29,11 +29,12 @@ declare -A VARIANT=(
   [lossless]="--colour-quality lossless"
   [default]=""
   [1m-id1]="--elevation-codec quantised-1 --max-error 1"
+  [1m-id2]="--elevation-codec quantised-2 --max-error 1"
   [1m]="--max-error 1"
 )
 for s in $SETS; do
-  variants="legacy id1 lossless default 1m-id1 1m"
-  [ "$s" = deep ] && variants="legacy default 1m-id1 1m"
+  variants="legacy id1 lossless default 1m-id1 1m-id2 1m"
+  [ "$s" = deep ] && variants="legacy default 1m-id2 1m"
   for v in $variants; do
     db="$OUT/$s-$v.planetdb"
     echo "# $B build ${SRC[$s]} ${VARIANT[$v]} --quiet --out $db" >&2
@@ -57,7 +58,7 @@ print("| data | codecs | elevation B/sample | × legacy | colour B/texel | × le
 print("|---|---|---|---|---|---|---|---|---|")
 for s in sets:
     leg = load(f"{out}/{s}-legacy.inspect.json")
-    for v in ["legacy", "id1", "lossless", "default", "1m-id1", "1m"]:
+    for v in ["legacy", "id1", "lossless", "default", "1m-id1", "1m-id2", "1m"]:
         r = load(f"{out}/{s}-{v}.inspect.json")
         if r is None:
             continue

@@ -3,7 +3,7 @@
 //!
 //! Id 3 predicts every new sample from *decoded* samples, the parent's
 //! included, so a record can be encoded only after its parent, while the
-//! build (thesis §5.3, [`crate::build`]) makes a block's grid from its
+//! build (thesis §5.3, [`mod@crate::build`]) makes a block's grid from its
 //! children's and writes children first. The build therefore writes the
 //! tree exact first (id 3 at max error 0, whose payloads are the source's
 //! samples), and this pass re-encodes it top-down: each block's exact grid

@@ -231,15 +231,22 @@ pub(super) struct InLoop {
     s: i32,
     /// `⌈2¹⁶/s⌉`: activities in steps.
     inverse: u32,
+    /// `⌈2¹⁶/s⌉·s`, which keeps the encoder's dividend positive.
+    offset: i32,
+    /// `⌊2⁴⁰/s⌋ + 1`: the encoder's division as a product.
+    divisor: u64,
 }
 
 impl InLoop {
     pub(super) fn new(k: u16) -> InLoop {
         let s = 2 * k as i32 + 1;
+        let inverse = (1u32 << 16).div_ceil(s as u32);
         InLoop {
             k: k as i32,
             s,
-            inverse: (1u32 << 16).div_ceil(s as u32),
+            inverse,
+            offset: inverse as i32 * s,
+            divisor: (1u64 << 40) / s as u64 + 1,
         }
     }
 }
@@ -259,7 +266,11 @@ impl Quant for InLoop {
     }
     #[inline(always)]
     fn residual(&self, v: i32, p0: i32) -> i32 {
-        (v - p0 + self.k).div_euclid(self.s)
+        // `⌊(v − p₀ + k)/s⌋` with n = v − p₀ + k + offset in [0, 2¹⁸): the
+        // product exceeds n/s by less than 2¹⁸/2⁴⁰, less than the 1/s ≥
+        // 2⁻¹⁵ by which a non-integer n/s falls short of the next integer.
+        let n = (v - p0 + self.k + self.offset) as u64;
+        ((n * self.divisor) >> 40) as i32 - self.inverse as i32
     }
     #[inline(always)]
     fn sample(&self, p0: i32, d: i32) -> Option<i32> {
@@ -955,6 +966,24 @@ mod tests {
 
     /// Id 3 at max error 0 is id 2, byte for byte (its cells are single
     /// values, and a prediction's fraction is measured in the same units).
+    /// The encoder's division by a product is floor division over the
+    /// whole range of residuals, at every step from 1 to the largest.
+    #[test]
+    fn in_loop_division_is_exact() {
+        for k in [0u16, 1, 2, 3, 7, 100, 1000, 4097, 10_922, 16_382, 16_383] {
+            let q = InLoop::new(k);
+            for x in (-65_535..=65_535).step_by(if k < 8 { 1 } else { 7 }) {
+                for v in [x, -65_535, 65_535] {
+                    assert_eq!(
+                        q.residual(v, 0),
+                        (v + k as i32).div_euclid(2 * k as i32 + 1),
+                        "k {k}, v {v}"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn in_loop_at_zero_is_id_2() {
         for w in [2usize, 4, 10, 16, 64] {
