@@ -1047,6 +1047,10 @@ mod tests {
                 ElevationCodec::Laplace { max_error: 1 },
                 ColourCodec::Haar(codec::colour::HaarParams::for_psnr(42.0)),
             ),
+            (
+                ElevationCodec::InLoop { max_error: 16_383 },
+                ColourCodec::Haar(codec::colour::HaarParams::for_psnr(42.0)),
+            ),
         ] {
             let mut h = sample_header(true);
             h.elevation.codec = e;
@@ -1054,6 +1058,32 @@ mod tests {
                 t.codec = c;
             }
             assert_eq!(Header::decode(&h.encode(), Some(1000)).unwrap(), h);
+        }
+    }
+
+    /// A header naming an elevation codec this reader does not know (a
+    /// newer writer's), or a known one with a parameter out of range, is a
+    /// typed error that names it.
+    #[test]
+    fn unknown_codec_ids_are_named() {
+        let h = sample_header(true);
+        for (offset, value, needle) in [
+            (60, 4u8, "elevation codec id 4"),
+            (63, 0x40, "max error up to 16383"),
+            (64, 3, "colour codec id 3"),
+        ] {
+            let mut b = h.encode();
+            b[offset] = value;
+            let n = b.len();
+            let crc = crc32fast::hash(&b[..n - 4]);
+            b[n - 4..].copy_from_slice(&crc.to_le_bytes());
+            match Header::decode(&b, Some(1000)) {
+                Err(e @ FormatError::Codec(_)) => {
+                    let msg = e.to_string();
+                    assert!(msg.contains(needle) && msg.contains("newer"), "{msg}");
+                }
+                other => panic!("byte {offset} = {value}: {other:?}"),
+            }
         }
     }
 

@@ -246,17 +246,37 @@ struct Ctx<'a> {
     c_bytes: AtomicU64,
 }
 
+/// Append a record to a build's shared writer: `(offset, size)`.
+pub(crate) fn append(
+    writer: &Mutex<Option<DbWriter>>,
+    out: &Path,
+    rec: &[u8],
+) -> Result<(u64, u32), BuildError> {
+    let mut g = writer.lock();
+    let w = g.as_mut().ok_or_else(|| BuildError::Write {
+        path: out.to_path_buf(),
+        msg: "writer already closed".into(),
+    })?;
+    w.append(rec).map_err(|e| BuildError::write(out, e))
+}
+
+/// Write the header and move the file into place (`finish` removes its
+/// temporary on error): the file's length.
+pub(crate) fn finish(
+    writer: Option<DbWriter>,
+    header: &Header,
+    out: &Path,
+) -> Result<u64, BuildError> {
+    let writer = writer.ok_or_else(|| BuildError::Write {
+        path: out.to_path_buf(),
+        msg: "writer lost".into(),
+    })?;
+    writer.finish(header).map_err(|e| BuildError::write(out, e))
+}
+
 impl Ctx<'_> {
     fn append(&self, rec: &[u8], tree: Tree) -> Result<(u64, u32), BuildError> {
-        let mut g = self.writer.lock();
-        let w = g.as_mut().ok_or_else(|| BuildError::Write {
-            path: self.out_path.to_path_buf(),
-            msg: "writer already closed".into(),
-        })?;
-        let r = w
-            .append(rec)
-            .map_err(|e| BuildError::write(self.out_path, e))?;
-        drop(g);
+        let r = append(&self.writer, self.out_path, rec)?;
         let (n, b) = match tree {
             Tree::Elevation => (&self.e_records, &self.e_bytes),
             Tree::Colour => (&self.c_records, &self.c_bytes),
@@ -525,14 +545,7 @@ fn build_pass(
         },
         description: src.description(),
     };
-    let writer = ctx.writer.lock().take().ok_or_else(|| BuildError::Write {
-        path: out.to_path_buf(),
-        msg: "writer lost".into(),
-    })?;
-    // `finish` removes its temporary on error.
-    let file_bytes = writer
-        .finish(&header)
-        .map_err(|e| BuildError::write(out, e))?;
+    let file_bytes = finish(ctx.writer.lock().take(), &header, out)?;
     let er = ctx.e_records.load(Ordering::Relaxed);
     let cr = ctx.c_records.load(Ordering::Relaxed);
     let ehalf = (EW / 2 + 1) as u64;

@@ -63,13 +63,7 @@ impl Pass<'_> {
     }
 
     fn append(&self, rec: &[u8]) -> Result<(u64, u32), BuildError> {
-        let mut g = self.writer.lock();
-        let w = g.as_mut().ok_or_else(|| BuildError::Write {
-            path: self.out.to_path_buf(),
-            msg: "writer already closed".into(),
-        })?;
-        let r = w.append(rec).map_err(|e| BuildError::write(self.out, e))?;
-        drop(g);
+        let r = crate::build::append(&self.writer, self.out, rec)?;
         self.bar.inc(1);
         Ok(r)
     }
@@ -221,13 +215,7 @@ pub fn in_loop(
             *r = roots[f].1.unwrap_or_default();
         }
     }
-    let writer = writer.ok_or_else(|| BuildError::Write {
-        path: out.to_path_buf(),
-        msg: "writer lost".into(),
-    })?;
-    let file_bytes = writer
-        .finish(&header)
-        .map_err(|e| BuildError::write(out, e))?;
+    let file_bytes = crate::build::finish(writer, &header, out)?;
     Ok(Transcoded {
         file_bytes,
         elevation_bytes: pass

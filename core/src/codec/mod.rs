@@ -268,7 +268,9 @@ impl ElevationCodec {
                 Ok(ElevationCodec::InLoop { max_error: k })
             }
             _ => Err(CodecError::Codec(format!(
-                "elevation codec id {id} with parameter {param}"
+                "elevation codec id {id} with parameter {param} is not one this reader \
+                 knows (ids 0-3, max error up to {}): written by a newer planet-build?",
+                elevation::MAX_ERROR_LIMIT
             ))),
         }
     }
@@ -387,7 +389,8 @@ impl ColourCodec {
                 Ok(ColourCodec::Haar(p))
             }
             _ => Err(CodecError::Codec(format!(
-                "colour codec id {id} with parameters {params:?}"
+                "colour codec id {id} with parameters {params:?} is not one this reader \
+                 knows (ids 0-2): written by a newer planet-build?"
             ))),
         }
     }
