@@ -438,7 +438,9 @@ fn build_inner(
     let in_loop = matches!(elevation_codec, ElevationCodec::InLoop { max_error } if max_error > 0);
     let exact_pass = if in_loop {
         let mut name = out.file_name().unwrap_or_default().to_os_string();
-        name.push(".exact-pass");
+        // The process id keeps a user's file and a concurrent build's
+        // first pass out of its way.
+        name.push(format!(".exact-pass-{}", std::process::id()));
         out.with_file_name(name)
     } else {
         out.to_path_buf()
