@@ -58,6 +58,7 @@ const ELEVATION_CODECS: [(&str, ElevationCodec); 6] = [
 /// `raw_len` and the grid holding its parent's decoded LOD 1.
 struct DbRecords {
     codec: ElevationCodec,
+    width: usize,
     records: Vec<(Vec<u8>, usize, Vec<i16>)>,
     samples: u64,
 }
@@ -65,55 +66,40 @@ struct DbRecords {
 /// The records of `CODEC_BENCH_DB`, if set (a bad path panics: a bench
 /// asked for it).
 fn db_records() -> Option<DbRecords> {
-    use planet_core::format::{parse_record, DbFile};
-    use planet_core::{BlockId, Face};
     let path = std::env::var_os("CODEC_BENCH_DB")?;
-    let db = DbFile::open(path.as_ref()).expect("CODEC_BENCH_DB opens");
-    let h = &db.header.elevation;
-    let w = h.block_width as usize;
-    let side = w + 1;
+    let db = planet_core::format::DbFile::open(path.as_ref()).expect("CODEC_BENCH_DB opens");
     let mut records = Vec::new();
-    for (fi, face) in Face::ALL.iter().enumerate() {
-        let mut first = vec![0i16; side * side];
-        lod::elevation_place_first_lod(&h.root_first_lods[fi], w, &mut first);
-        let mut stack = vec![(BlockId::root(*face), h.root_records[fi], first)];
-        while let Some((b, r, lod1)) = stack.pop() {
-            if records.len() >= 4096 {
-                break;
-            }
-            let bytes = db.read_record(&r).expect("record reads");
-            let rec = parse_record(&bytes, None).expect("record parses");
-            let mut grid = lod1.clone();
-            rec.decode_elevation(&h.codec, w, &mut grid)
-                .expect("record decodes");
-            for (k, c) in rec.header.children.iter().enumerate() {
-                let mut cg = vec![0i16; side * side];
-                lod::split_elevation(&grid, w, k, &mut cg);
-                stack.push((b.child(k), *c, cg));
-            }
-            records.push((rec.payload.to_vec(), rec.header.raw_len as usize, lod1));
-        }
-    }
-    let samples = (records.len() * lod::elevation_new_samples(w)) as u64;
+    db.walk_elevation(|v| {
+        records.push((
+            v.record.payload.to_vec(),
+            v.record.header.raw_len as usize,
+            v.lod1.to_vec(),
+        ));
+        records.len() < 4096
+    })
+    .expect("CODEC_BENCH_DB's records decode");
+    let h = &db.header.elevation;
+    let width = h.block_width as usize;
     Some(DbRecords {
         codec: h.codec,
+        width,
+        samples: (records.len() * lod::elevation_new_samples(width)) as u64,
         records,
-        samples,
     })
 }
 
 impl DbRecords {
     fn decode_all(&self, grid: &mut Vec<i16>) {
-        let w = ((self.records[0].2.len() as f64).sqrt() as usize) - 1;
         for (p, raw, lod1) in &self.records {
             grid.clone_from(lod1);
             self.codec
-                .decode(p, *raw, w, grid)
+                .decode(p, *raw, self.width, grid)
                 .expect("own database's record");
             black_box(&grid);
         }
     }
 }
+
 const CW: usize = 128;
 const BLOCKS: usize = 32;
 
@@ -233,20 +219,17 @@ fn cpu_table() {
                 black_box(&grid);
             }
         });
-        rows.push((name, bytes as f64 / en as f64, enc, dec));
+        rows.push((name.to_string(), bytes as f64 / en as f64, enc, dec));
     }
     if let Some(db) = db_records() {
         let bytes: usize = db.records.iter().map(|r| r.0.len()).sum();
         let mut grid = Vec::new();
         let dec = per_cpu_second(db.samples, || db.decode_all(&mut grid));
-        let name: &'static str = Box::leak(
-            format!(
-                "elevation {} k {}, {} records of CODEC_BENCH_DB",
-                db.codec.name(),
-                db.codec.max_error(),
-                db.records.len()
-            )
-            .into_boxed_str(),
+        let name = format!(
+            "elevation {} k {}, {} records of CODEC_BENCH_DB",
+            db.codec.name(),
+            db.codec.max_error(),
+            db.records.len()
         );
         rows.push((name, bytes as f64 / db.samples as f64, None, dec));
     }
@@ -281,7 +264,7 @@ fn cpu_table() {
                 );
             }
         });
-        rows.push((name, bytes as f64 / cn as f64, enc, dec));
+        rows.push((name.to_string(), bytes as f64 / cn as f64, enc, dec));
     }
     let m = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{:.1}", v / 1e6));
     println!("| codec | bytes per sample | encode M samples/CPU-s | decode M samples/CPU-s |");

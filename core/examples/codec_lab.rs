@@ -10,32 +10,17 @@
 use planet_core::codec::{ElevationCodec, Payload};
 use planet_core::format::{parse_record, DbFile};
 use planet_core::lod;
-use planet_core::{BlockId, Face};
+use planet_core::BlockId;
 use std::collections::HashMap;
 
 fn grids(path: &str) -> Vec<Vec<i16>> {
     let db = DbFile::open(path.as_ref()).unwrap();
-    let h = db.header.clone();
-    let w = h.elevation.block_width as usize;
-    let side = w + 1;
     let mut out = Vec::new();
-    for (fi, face) in Face::ALL.iter().enumerate() {
-        let mut full = vec![0i16; side * side];
-        lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
-        let mut stack = vec![(BlockId::root(*face), h.elevation.root_records[fi], full)];
-        while let Some((b, r, mut grid)) = stack.pop() {
-            let bytes = db.read_record(&r).unwrap();
-            let rec = parse_record(&bytes, None).unwrap();
-            rec.decode_elevation(&h.elevation.codec, w, &mut grid)
-                .unwrap();
-            for (k, c) in rec.header.children.iter().enumerate() {
-                let mut cg = vec![0i16; side * side];
-                lod::split_elevation(&grid, w, k, &mut cg);
-                stack.push((b.child(k), *c, cg));
-            }
-            out.push(grid);
-        }
-    }
+    db.walk_elevation(|v| {
+        out.push(v.full.to_vec());
+        true
+    })
+    .unwrap();
     out
 }
 
@@ -44,55 +29,45 @@ fn grids(path: &str) -> Vec<Vec<i16>> {
 /// error of id 3's decoded samples against the source.
 fn in_loop(path: &str, k: u16) {
     let db = DbFile::open(path.as_ref()).unwrap();
-    let h = db.header.clone();
-    let w = h.elevation.block_width as usize;
-    let side = w + 1;
+    let w = db.header.elevation.block_width as usize;
     let (fixed, inloop) = (
         ElevationCodec::Laplace { max_error: k },
         ElevationCodec::InLoop { max_error: k },
     );
     let (mut b2, mut b3, mut n, mut worst) = (0usize, 0usize, 0usize, 0i32);
-    for (fi, face) in Face::ALL.iter().enumerate() {
-        let mut full = vec![0i16; side * side];
-        lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
-        let mut stack = vec![(
-            BlockId::root(*face),
-            h.elevation.root_records[fi],
-            full.clone(),
-            full,
-        )];
-        while let Some((b, r, mut src, mut dec)) = stack.pop() {
-            let bytes = db.read_record(&r).unwrap();
-            let rec = parse_record(&bytes, None).unwrap();
-            rec.decode_elevation(&h.elevation.codec, w, &mut src)
-                .unwrap();
-            b2 += fixed.encode(&src, w).bytes.len();
-            // The encoder's grid: the parent's decoded LOD 1, the source
-            // elsewhere.
-            let mut enc = src.clone();
-            for j in (0..side).step_by(2) {
-                for i in (0..side).step_by(2) {
-                    enc[j * side + i] = dec[j * side + i];
-                }
-            }
-            let p = inloop.encode(&enc, w);
-            b3 += p.bytes.len();
-            inloop
-                .decode(&p.bytes, p.raw_len as usize, w, &mut dec)
-                .unwrap();
-            for (a, b) in dec.iter().zip(&src) {
-                worst = worst.max((*a as i32 - *b as i32).abs());
-            }
-            n += 1;
-            for (kk, c) in rec.header.children.iter().enumerate() {
-                let mut cs = vec![0i16; side * side];
-                let mut cd = vec![0i16; side * side];
-                lod::split_elevation(&src, w, kk, &mut cs);
-                lod::split_elevation(&dec, w, kk, &mut cd);
-                stack.push((b.child(kk), *c, cs, cd));
+    // Each split block's id 3 decode, with the children still to visit.
+    let mut decoded: HashMap<BlockId, (Vec<i16>, usize)> = HashMap::new();
+    db.walk_elevation(|v| {
+        b2 += fixed.encode(v.full, w).bytes.len();
+        // The decoder's LOD 1: the parent's id 3 decode (the root's exact).
+        let mut dec = v.lod1.to_vec();
+        if let Some(parent) = v.block.parent() {
+            let (pgrid, left) = decoded.get_mut(&parent).expect("parent first");
+            lod::split_elevation(pgrid, w, v.block.child_index(), &mut dec);
+            *left -= 1;
+            if *left == 0 {
+                decoded.remove(&parent);
             }
         }
-    }
+        // The encoder's grid: that LOD 1, the source elsewhere.
+        let mut enc = v.full.to_vec();
+        lod::elevation_place_first_lod(&lod::elevation_first_lod(&dec, w), w, &mut enc);
+        let p = inloop.encode(&enc, w);
+        b3 += p.bytes.len();
+        inloop
+            .decode(&p.bytes, p.raw_len as usize, w, &mut dec)
+            .unwrap();
+        for (a, b) in dec.iter().zip(v.full) {
+            worst = worst.max((*a as i32 - *b as i32).abs());
+        }
+        n += 1;
+        let kids = v.record.header.children.len();
+        if kids > 0 {
+            decoded.insert(v.block, (dec, kids));
+        }
+        true
+    })
+    .unwrap();
     println!(
         "{n} records, k {k}: id 2 {b2} bytes, id 3 {b3} bytes ({:.4}×), id 3 max error {worst}",
         b3 as f64 / b2 as f64
@@ -229,27 +204,14 @@ fn decode_rate(path: &str, stride: usize) {
     let w = h.elevation.block_width as usize;
     let side = w + 1;
     let (mut jobs, mut seen) = (Vec::new(), 0usize);
-    for (fi, face) in Face::ALL.iter().enumerate() {
-        let mut full = vec![0i16; side * side];
-        lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
-        let mut stack = vec![(BlockId::root(*face), h.elevation.root_records[fi], full)];
-        while let Some((b, r, first)) = stack.pop() {
-            let bytes = db.read_record(&r).unwrap();
-            let rec = parse_record(&bytes, None).unwrap();
-            let mut grid = first.clone();
-            rec.decode_elevation(&h.elevation.codec, w, &mut grid)
-                .unwrap();
-            for (k, c) in rec.header.children.iter().enumerate() {
-                let mut cg = vec![0i16; side * side];
-                lod::split_elevation(&grid, w, k, &mut cg);
-                stack.push((b.child(k), *c, cg));
-            }
-            seen += 1;
-            if seen % stride == 0 {
-                jobs.push((bytes, first));
-            }
+    db.walk_elevation(|v| {
+        seen += 1;
+        if seen % stride == 0 {
+            jobs.push((v.bytes.to_vec(), v.lod1.to_vec()));
         }
-    }
+        true
+    })
+    .unwrap();
     let n = jobs.len() * lod::elevation_new_samples(w);
     let start = cpu_ns();
     let mut runs = 0;

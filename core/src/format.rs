@@ -863,6 +863,33 @@ pub fn read_validated_head(
     })
 }
 
+/// A record of the elevation tree that [`DbFile::walk_elevation`] could
+/// not read, parse or decode.
+#[derive(Debug, Error)]
+#[error("elevation record at offset {offset}: {source}")]
+pub struct WalkError {
+    /// The record's offset.
+    pub offset: u64,
+    /// What was wrong.
+    #[source]
+    pub source: FormatError,
+}
+
+/// One record met by [`DbFile::walk_elevation`].
+pub struct ElevationVisit<'a> {
+    /// The block.
+    pub block: BlockId,
+    /// The record's bytes as stored.
+    pub bytes: &'a [u8],
+    /// The record, parsed and checked.
+    pub record: &'a Record<'a>,
+    /// The block's `(w+1)²` grid before its record: LOD 1 placed (the
+    /// parent's decoded samples; the root's from the header).
+    pub lod1: &'a [i16],
+    /// The same grid after the record: the block's full decoded samples.
+    pub full: &'a [i16],
+}
+
 /// A database file opened for reading with positioned reads.
 pub struct DbFile {
     file: File,
@@ -906,6 +933,52 @@ impl DbFile {
         let mut buf = vec![0u8; r.size as usize];
         self.file.read_exact_at(&mut buf, r.offset)?;
         Ok(buf)
+    }
+
+    /// Walk the elevation tree depth-first from the six roots, a parent
+    /// before its children, decoding each record from its parent's decoded
+    /// samples, and call `f` with each; `f` returns `false` to stop the
+    /// walk.
+    pub fn walk_elevation(
+        &self,
+        mut f: impl FnMut(&ElevationVisit<'_>) -> bool,
+    ) -> Result<(), WalkError> {
+        let h = &self.header.elevation;
+        let w = h.block_width as usize;
+        let side = w + 1;
+        for (fi, face) in Face::ALL.iter().enumerate() {
+            let mut lod1 = vec![0i16; side * side];
+            crate::lod::elevation_place_first_lod(&h.root_first_lods[fi], w, &mut lod1);
+            let mut stack = vec![(BlockId::root(*face), h.root_records[fi], lod1)];
+            while let Some((block, r, lod1)) = stack.pop() {
+                let at = |source| WalkError {
+                    offset: r.offset,
+                    source,
+                };
+                let bytes = self.read_record(&r).map_err(at)?;
+                let record = parse_record(&bytes, None).map_err(at)?;
+                let mut full = lod1.clone();
+                record
+                    .decode_elevation(&h.codec, w, &mut full)
+                    .map_err(at)?;
+                let visit = ElevationVisit {
+                    block,
+                    bytes: &bytes,
+                    record: &record,
+                    lod1: &lod1,
+                    full: &full,
+                };
+                if !f(&visit) {
+                    return Ok(());
+                }
+                for (k, c) in record.header.children.iter().enumerate() {
+                    let mut child = vec![0i16; side * side];
+                    crate::lod::split_elevation(&full, w, k, &mut child);
+                    stack.push((block.child(k), *c, child));
+                }
+            }
+        }
+        Ok(())
     }
 }
 

@@ -676,27 +676,12 @@ impl Sampler {
         &self,
         mut f: impl FnMut(BlockId, &[i16]),
     ) -> Result<(), DbError> {
-        let h = &self.db.header;
-        let w = h.elevation.block_width as usize;
-        let side = w + 1;
-        for (fi, face) in Face::ALL.iter().enumerate() {
-            let mut full = vec![0i16; side * side];
-            lod::elevation_place_first_lod(&h.elevation.root_first_lods[fi], w, &mut full);
-            let mut stack = vec![(BlockId::root(*face), h.elevation.root_records[fi], full)];
-            while let Some((b, r, mut grid)) = stack.pop() {
-                let bytes = self.db.read_record(&r).map_err(bad(r.offset))?;
-                let rec = parse_record(&bytes, None).map_err(bad(r.offset))?;
-                rec.decode_elevation(&h.elevation.codec, w, &mut grid)
-                    .map_err(bad(r.offset))?;
-                f(b, &grid);
-                for (k, c) in rec.header.children.iter().enumerate() {
-                    let mut cg = vec![0i16; side * side];
-                    lod::split_elevation(&grid, w, k, &mut cg);
-                    stack.push((b.child(k), *c, cg));
-                }
-            }
-        }
-        Ok(())
+        self.db
+            .walk_elevation(|v| {
+                f(v.block, v.full);
+                true
+            })
+            .map_err(|e| bad(e.offset)(e.source))
     }
 
     /// Decode the full colour grid of every colour block and call `f`.

@@ -86,11 +86,7 @@ impl Pass<'_> {
             .map_err(|e| self.corrupt(e))?;
         // The encoder's grid: the decoder's LOD 1, the source elsewhere.
         let mut grid = src.clone();
-        for j in (0..side).step_by(2) {
-            for i in (0..side).step_by(2) {
-                grid[j * side + i] = dec[j * side + i];
-            }
-        }
+        lod::elevation_place_first_lod(&lod::elevation_first_lod(&dec, w), w, &mut grid);
         let payload = self.codec.encode(&grid, w);
         self.codec
             .decode(&payload.bytes, payload.raw_len as usize, w, &mut dec)

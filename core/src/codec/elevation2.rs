@@ -182,12 +182,26 @@ pub(super) trait Quant: Copy {
 /// LOD 1 index is the same from the source and from the parent's decoded
 /// value.
 #[derive(Clone, Copy)]
-pub(super) struct Fixed(Quantiser);
+pub(super) struct Fixed {
+    q: Quantiser,
+    /// `q.range()`, which the coder's loop reads per sample.
+    range: (i32, i32),
+}
+
+impl Fixed {
+    pub(super) fn new(k: u16) -> Fixed {
+        let q = Quantiser::new(k);
+        Fixed {
+            q,
+            range: q.range(),
+        }
+    }
+}
 
 impl Quant for Fixed {
     #[inline(always)]
     fn unit(&self, v: i16) -> i32 {
-        self.0.index(v)
+        self.q.index(v)
     }
     #[inline(always)]
     fn step(&self) -> i32 {
@@ -205,16 +219,16 @@ impl Quant for Fixed {
     fn sample(&self, p0: i32, d: i32) -> Option<i32> {
         // |d| < 2¹⁶ and p₀ is in the i16 index range: no overflow.
         let v = p0 + d;
-        let (lo, hi) = self.0.range();
+        let (lo, hi) = self.range;
         // `lo ≤ v ≤ hi` in one comparison.
         ((v - lo) as u32 <= (hi - lo) as u32).then_some(v)
     }
     #[inline(always)]
     fn stored(&self, x: i32) -> i16 {
-        self.0.value(x)
+        self.q.value(x)
     }
     fn range(&self) -> (i32, i32) {
-        self.0.range()
+        self.range
     }
 }
 
@@ -363,7 +377,8 @@ impl Preds {
     }
 
     /// Nearest indices, centres and flips of the predictions `p32`.
-    fn finish(&mut self, (lo, hi): (i32, i32), step: i32) {
+    fn finish(&mut self, q: &impl Quant) {
+        let ((lo, hi), step) = (q.range(), q.step());
         let half = 1 << (FRAC_BITS - 1);
         for ((p0, meta), &p32) in self.p0.iter_mut().zip(&mut self.meta).zip(&self.p32) {
             let p = (p32 + half) >> FRAC_BITS;
@@ -396,10 +411,6 @@ struct Planes {
     zv: Vec<u32>,
     eh: Vec<i32>,
     ev: Vec<i32>,
-    /// The range of plane values.
-    range: (i32, i32),
-    /// A quantisation step in plane units.
-    step: i32,
 }
 
 /// Fill `out` with a plane of a `side²` grid's indices: the samples with
@@ -417,7 +428,7 @@ impl Planes {
     /// read). Buffers keep their allocation from record to record.
     fn fill(&mut self, grid: &[i16], side: usize, quant: &impl Quant, new: bool) {
         let h = side / 2;
-        (self.h, self.range, self.step) = (h, quant.range(), quant.step());
+        self.h = h;
         plane(&mut self.l, grid, side, (0, 0), quant);
         if new {
             plane(&mut self.mh, grid, side, (1, 0), quant);
@@ -453,7 +464,7 @@ impl Planes {
                 }
             }
         }
-        p.finish(self.range, self.step);
+        p.finish(q);
     }
 
     /// Predictions of the midpoints along `j`: the same down the columns
@@ -478,7 +489,7 @@ impl Planes {
                 }
             }
         }
-        p.finish(self.range, self.step);
+        p.finish(q);
     }
 
     /// Predictions of the cell centres from the decoded midpoints: the
@@ -537,7 +548,7 @@ impl Planes {
                 }
             }
         }
-        p.finish(self.range, self.step);
+        p.finish(q);
     }
 }
 
@@ -704,7 +715,7 @@ impl Sampler for Residuals {
 /// Encode the LOD 0 samples of a full `(w+1)²` grid of source values with
 /// max error `k`: the record payload (id 2).
 pub fn encode(grid: &[i16], w: usize, k: u16) -> Vec<u8> {
-    encode_with(grid, w, Fixed(Quantiser::new(k)))
+    encode_with(grid, w, Fixed::new(k))
 }
 
 /// Id 3's payload of a full `(w+1)²` grid whose LOD 1 positions hold the
@@ -827,7 +838,7 @@ impl Sampler for Decoder {
 /// Decode into a `(w+1)²` grid whose LOD 1 positions hold the parent's
 /// decoded samples; every new sample ends within `k` of its source value.
 pub fn decode(raw: &[u8], w: usize, k: u16, grid: &mut [i16]) -> Result<(), CodecError> {
-    decode_with(raw, w, Fixed(Quantiser::new(k)), grid)
+    decode_with(raw, w, Fixed::new(k), grid)
 }
 
 /// Decode id 3's payload into a `(w+1)²` grid whose LOD 1 positions hold
@@ -1033,11 +1044,8 @@ mod tests {
             let mut grid = vec![0i16; side * side];
             crate::lod::split_elevation(&dec, w, child, &mut grid);
             let mut enc = src.clone();
-            for j in (0..side).step_by(2) {
-                for i in (0..side).step_by(2) {
-                    enc[j * side + i] = grid[j * side + i];
-                }
-            }
+            let lod1 = crate::lod::elevation_first_lod(&grid, w);
+            crate::lod::elevation_place_first_lod(&lod1, w, &mut enc);
             let payload = encode_in_loop(&enc, w, k);
             (b3, b2) = (b3 + payload.len(), b2 + encode(&src, w, k).len());
             decode_in_loop(&payload, w, k, &mut grid).unwrap();
