@@ -42,6 +42,7 @@ use clap::Args;
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::trajectory::Trajectory;
 use planet_client::{Client, ClientConfig, Policy};
+use planet_core::BlockId;
 use planet_linksim::{Link, LinkConfig, TcpLink};
 use planet_preprocess::db::Sampler;
 use planet_session::http::HttpSessionConfig;
@@ -110,8 +111,9 @@ pub struct FlightArgs {
     /// (client/src/view_prediction.rs), for A/B comparisons.
     #[arg(long)]
     pub no_predict: bool,
-    /// Skip the bytes-needed estimate (an instant-delivery flight over the
-    /// database file).
+    /// Skip the instant replay (the flight over the database file with
+    /// every request answered at once), which gives the bytes needed, the
+    /// error floor and the start's lower bound.
     #[arg(long)]
     pub no_needed: bool,
     /// A returning client: connect once through the same link first (same
@@ -229,6 +231,11 @@ pub struct Summary {
     /// were applied and never drawn).
     pub dropped_pct: f64,
     pub needed_over_delivered: Option<f64>,
+    /// ∫ dt of the per-pixel mean SSE that the instant replay draws
+    /// ([`InstantReplay::floor`]): the error the tolerance leaves.
+    pub floor_integral: Option<f64>,
+    /// [`InstantReplay::start_bound_s`] for this link.
+    pub start_bound_s: Option<f64>,
     pub first_frame_ms: f64,
     /// The measured connection resumed a session and its Hello went as
     /// 0-RTT early data (`--warm`).
@@ -310,6 +317,17 @@ struct JsonSummary<'a> {
     cancels: u64,
     needed_over_delivered: Option<f64>,
     needed_bytes: Option<u64>,
+    /// ∫ per-pixel mean SSE dt of the same flight with every request
+    /// answered at once: the error the tolerance leaves, which no
+    /// scheduling removes.
+    floor_error_integral_px_s: Option<f64>,
+    /// `error_integral_px_s` − `floor_error_integral_px_s`: the error of
+    /// data not yet arrived.
+    excess_error_integral_px_s: Option<f64>,
+    /// A lower bound on `time_to_1px_after_stops_s` of a stop at t = 0
+    /// (one round trip and the start view's elevation bytes at the link's
+    /// rate).
+    start_lower_bound_s: Option<f64>,
     first_frame_ms: f64,
     final_sse_max_px: f64,
     cpu_mean_ms: f64,
@@ -327,6 +345,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
     let several = args.dbs.len() > 1;
     let mut summaries = Vec::new();
     let mut needed_per_db = Vec::new();
+    let mut floors: Vec<Option<Vec<f64>>> = Vec::new();
     // Per link: every (database, policy) run, for one overlaid plot.
     let mut per_link: Vec<Vec<(String, Vec<Row>)>> = vec![Vec::new(); args.links.len()];
     for db in &args.dbs {
@@ -359,16 +378,22 @@ pub fn run(args: FlightArgs) -> Result<()> {
             None
         } else {
             let t0 = Instant::now();
-            let n = needed_bytes(&a, &traj)?;
+            let r = instant_replay(&a, &traj)?;
             eprintln!(
-                "{}: bytes needed for ≤ {} px along the path (instant delivery): {:.2} MB ({:.1} s)",
+                "{}: bytes needed for ≤ {} px along the path (instant delivery): {:.2} MB, \
+                 {:.1} kB of elevation in a chain of {} at the start, floor ∫ {:.1} px·s \
+                 ({:.1} s)",
                 a.db.display(),
                 a.max_sse,
-                n as f64 / 1e6,
+                r.needed as f64 / 1e6,
+                r.start_elevation as f64 / 1e3,
+                r.start_chain,
+                r.floor_integral(a.fps),
                 t0.elapsed().as_secs_f64()
             );
-            Some(n)
+            Some(r)
         };
+        floors.push(needed.as_ref().map(|r| r.floor.clone()));
         let transports = a.transports.len() > 1;
         for (k, spec) in a.links.iter().enumerate() {
             for (&transport, &policy) in a
@@ -376,7 +401,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
                 .iter()
                 .flat_map(|t| a.policies.iter().map(move |p| (t, p)))
             {
-                let (s, rows) = run_link(&a, &traj, spec, transport, policy, needed)?;
+                let (s, rows) = run_link(&a, &traj, spec, transport, policy, needed.as_ref())?;
                 print_summary(std::slice::from_ref(&s));
                 let mut name = policy.name().to_string();
                 if transports {
@@ -386,11 +411,21 @@ pub fn run(args: FlightArgs) -> Result<()> {
                     name = format!("{name} @ {}", s.db);
                 }
                 per_link[k].push((name, rows));
-                needed_per_db.push(needed);
+                needed_per_db.push(needed.as_ref().map(|r| r.needed));
                 summaries.push(s);
             }
         }
     }
+    // The floor in the plot when one database was flown.
+    let floor: Option<Vec<(f64, f64)>> = match floors.as_slice() {
+        [Some(f)] => Some(
+            f.iter()
+                .enumerate()
+                .map(|(n, &y)| (n as f64 / args.fps, y))
+                .collect(),
+        ),
+        _ => None,
+    };
     for (spec, runs) in args.links.iter().zip(&per_link) {
         let label = args.label.clone().unwrap_or_else(|| spec.to_string());
         plot::policies_plot(
@@ -401,6 +436,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
             ),
             runs,
             args.max_sse,
+            floor.as_deref(),
         )?;
     }
     let a = &args;
@@ -428,6 +464,9 @@ pub fn run(args: FlightArgs) -> Result<()> {
             cancels: s.cancels,
             needed_over_delivered: s.needed_over_delivered,
             needed_bytes: needed,
+            floor_error_integral_px_s: s.floor_integral,
+            excess_error_integral_px_s: s.floor_integral.map(|f| s.error_integral - f),
+            start_lower_bound_s: s.start_bound_s,
             first_frame_ms: s.first_frame_ms,
             final_sse_max_px: s.final_sse_max,
             cpu_mean_ms: s.cpu_mean_ms,
@@ -464,53 +503,153 @@ fn client_config(a: &FlightArgs, policy: Policy) -> ClientConfig {
     cfg
 }
 
-/// Bytes of every record the default policy needs to reach the tolerance
-/// along the trajectory when the link is not the limit: the flight replayed
-/// every half second over the database file with every request answered at
-/// once, to convergence at each sample, counting each record once.
-fn needed_bytes(a: &FlightArgs, traj: &Trajectory) -> Result<u64> {
-    let file = std::fs::read(&a.db).with_context(|| format!("reading {}", a.db.display()))?;
-    let sampler = Sampler::open(&a.db)?;
-    let header = sampler.header().clone();
-    let datum = header.datum;
-    let cfg = ClientConfig {
+/// The flight replayed with every request answered at once (the link no
+/// limit): the same trajectory, frame by frame at `--fps`, over the
+/// database file, the default policy converged at the tolerance at each
+/// frame before the next.
+#[derive(Debug, Clone, Default)]
+pub struct InstantReplay {
+    /// Bytes of every record it fetched along the path, each counted once:
+    /// what the flight needs for the tolerance when the link is not the
+    /// limit.
+    pub needed: u64,
+    /// Elevation bytes the first frame's view needs from nothing for the
+    /// tolerance ([`start_needs`]): what any policy must receive before
+    /// the view meets it at the start (a child's place and error are in
+    /// its parent). 0 where the first frame met it before any record
+    /// arrived.
+    pub start_elevation: u64,
+    /// The longest chain of those records: the deepest one's level + 1. A record's place in the file is in
+    /// its parent (docs/FORMAT.md), so each link of the chain costs a
+    /// round trip.
+    pub start_chain: u32,
+    /// Per frame: the per-pixel mean SSE of its converged view, the error
+    /// that remains at the tolerance whatever the link.
+    pub floor: Vec<f64>,
+}
+
+impl InstantReplay {
+    /// ∫ floor dt: the part of a run's `error_integral_px_s` that the
+    /// tolerance leaves, which no scheduling removes.
+    pub fn floor_integral(&self, fps: f64) -> f64 {
+        self.floor.iter().sum::<f64>() / fps
+    }
+
+    /// A lower bound on the time to the tolerance at a stop that starts
+    /// at t = 0 over `link` (0 where the first frame meets it before any
+    /// record arrives): the larger of a round trip per link of
+    /// [`InstantReplay::start_chain`] and one round trip plus the start's
+    /// elevation bytes at the link's rate (framing, the congestion
+    /// controller's start-up and decoding left out). `None` for an
+    /// unlimited link.
+    pub fn start_bound_s(&self, link: &LinkConfig) -> Option<f64> {
+        let rtt = 2.0 * link.delay.as_secs_f64();
+        if self.start_chain == 0 {
+            return Some(0.0);
+        }
+        link.bandwidth_bps.filter(|&b| b > 0).map(|b| {
+            (self.start_chain as f64 * rtt).max(rtt + self.start_elevation as f64 * 8.0 / b as f64)
+        })
+    }
+}
+
+/// The default policy with every request answered in the same frame.
+fn replay_config(a: &FlightArgs) -> ClientConfig {
+    let mut cfg = ClientConfig {
         decode_threads: 0,
         tree_ops_per_frame: 4096,
         ..ClientConfig::for_policy(Policy::Ours, a.max_sse)
     };
-    let mut cfg = cfg;
     cfg.queue.max_in_flight = 100_000;
     cfg.link_window = false;
     cfg.predict_view = false;
+    cfg
+}
+
+/// [`InstantReplay::start_elevation`] and [`InstantReplay::start_chain`]:
+/// the first frame converged from nothing by a client that sees the
+/// geometry only (colour refines elevation blocks too, §4.4.1, and the
+/// stops measure geometry), counting the elevation records it asks for but
+/// a neighbour's forced ones (crack-free splits, which Cesium's skirts do
+/// not need). (0, 0) where the view meets the tolerance before any record
+/// arrives.
+fn start_needs(
+    file: &[u8],
+    header: &planet_core::format::Header,
+    cfg: ClientConfig,
+    camera: &planet_client::Camera,
+    a: &FlightArgs,
+) -> Result<(u64, u32)> {
+    let mut header = header.clone();
+    header.colour = None;
     let mut client = Client::new(header, cfg)?;
+    let (mut bytes, mut chain) = (0u64, 0u32);
+    for k in 0..400 {
+        let out = client.frame(camera, 1.0 / a.fps);
+        if k == 0 && !out.draw.is_empty() && out.stats.max_screen_error <= a.max_sse {
+            return Ok((0, 0));
+        }
+        let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
+        for s in &out.send {
+            let (o, len) = (s.record.offset as usize, s.record.size as usize);
+            let data = file
+                .get(o..o + len)
+                .with_context(|| format!("record at {o} + {len} outside the file"))?;
+            if !s.forced {
+                bytes += len as u64;
+                chain = chain.max(u32::from(s.block.level) + 1);
+            }
+            client.deliver(s.id, Ok(data.to_vec()));
+        }
+        client.recycle(out.draw);
+        if !busy && client.queue().in_flight() == 0 {
+            break;
+        }
+    }
+    Ok((bytes, chain))
+}
+
+fn instant_replay(a: &FlightArgs, traj: &Trajectory) -> Result<InstantReplay> {
+    let file = std::fs::read(&a.db).with_context(|| format!("reading {}", a.db.display()))?;
+    let sampler = Sampler::open(&a.db)?;
+    let header = sampler.header().clone();
+    let datum = header.datum;
     let mut seen: std::collections::HashSet<(u64, u32)> = Default::default();
-    let mut total = 0u64;
+    let mut out0 = InstantReplay::default();
     let duration = a.duration.unwrap_or(traj.duration()).min(traj.duration());
-    let steps = (duration / 0.5).ceil() as usize;
+    let frames = (duration * a.fps).floor() as u64 + 1;
     let aspect = 16.0 / 9.0;
     let fov = 60f64.to_radians();
-    for k in 0..=steps {
-        let t = (k as f64 * 0.5).min(duration);
+    let camera = traj.camera_at(0.0, &datum, fov, aspect, a.viewport_height);
+    (out0.start_elevation, out0.start_chain) =
+        start_needs(&file, &header, replay_config(a), &camera, a)?;
+    let mut client = Client::new(header, replay_config(a))?;
+    for n in 0..frames {
+        let t = n as f64 / a.fps;
         let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
+        let mut floor = 0.0;
         for _ in 0..400 {
             let out = client.frame(&camera, 1.0 / a.fps);
+            floor = out.stats.pixel_mean_screen_error;
             let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
             for s in &out.send {
-                let (o, n) = (s.record.offset as usize, s.record.size as usize);
+                let (o, len) = (s.record.offset as usize, s.record.size as usize);
                 let bytes = file
-                    .get(o..o + n)
-                    .with_context(|| format!("record at {o} + {n} outside the file"))?;
+                    .get(o..o + len)
+                    .with_context(|| format!("record at {o} + {len} outside the file"))?;
                 if seen.insert((s.record.offset, s.record.size)) {
-                    total += n as u64;
+                    out0.needed += len as u64;
                 }
                 client.deliver(s.id, Ok(bytes.to_vec()));
             }
+            client.recycle(out.draw);
             if !busy && client.queue().in_flight() == 0 {
                 break;
             }
         }
+        out0.floor.push(floor);
     }
-    Ok(total)
+    Ok(out0)
 }
 
 /// The server side of one run: planet-server through the UDP relay, or
@@ -542,9 +681,10 @@ fn run_link(
     spec: &str,
     transport: Transport,
     policy: Policy,
-    needed: Option<u64>,
+    instant: Option<&InstantReplay>,
 ) -> Result<(Summary, Vec<Row>)> {
     let cfg: LinkConfig = spec.parse().with_context(|| format!("link {spec:?}"))?;
+    let link_cfg = cfg.clone();
     let label = a.label.clone().unwrap_or_else(|| spec.to_string());
     eprintln!("== {label} / {transport} / {policy}: {}", a.db.display());
     let rt = runtime(2)?;
@@ -723,7 +863,7 @@ fn run_link(
         let drawn: HashMap<_, _> = out.draw.iter().map(|d| (d.block, d.lod)).collect();
         for &(lat, lon, _) in probes.iter().take(200) {
             let fc = planet_core::cube::FaceCoord::from_lat_lon(lat.to_radians(), lon.to_radians());
-            let mut id = planet_core::BlockId::root(fc.face);
+            let mut id = BlockId::root(fc.face);
             let et = sc.client.tree().elevation();
             while et.get(&id).is_some_and(|n| n.split) {
                 let n = (1u64 << id.level) as f64;
@@ -776,10 +916,16 @@ fn run_link(
     let error_integral: f64 = rows.iter().map(|r| r.sse_pixel_mean * dt).sum();
     let max_sse_integral: f64 = rows.iter().map(|r| r.sse_max * dt).sum();
     let block_error_integral: f64 = rows.iter().map(|r| r.sse_mean * dt).sum();
-    let needed_over_delivered = match (needed, bandwidth) {
-        (Some(n), Some(bps)) if duration > 0.0 => Some(n as f64 / (bps as f64 / 8.0 * duration)),
+    let needed_over_delivered = match (instant, bandwidth) {
+        (Some(r), Some(bps)) if duration > 0.0 => {
+            Some(r.needed as f64 / (bps as f64 / 8.0 * duration))
+        }
         _ => None,
     };
+    let floor_integral = instant.map(|r| r.floor_integral(a.fps));
+    let start_bound_s = instant
+        .filter(|_| stops.first().is_some_and(|s| s.0 == 0.0))
+        .and_then(|r| r.start_bound_s(&link_cfg));
     let mut cpu: Vec<f64> = rows.iter().map(|r| r.cpu_ms).collect();
     cpu.sort_by(f64::total_cmp);
     let p99 = cpu[((cpu.len() as f64 * 0.99) as usize).min(cpu.len() - 1)];
@@ -798,6 +944,8 @@ fn run_link(
             wasted_pct: 100.0 * totals.wasted_ratio(),
             dropped_pct: 100.0 * totals.dropped_ratio(),
             needed_over_delivered,
+            floor_integral,
+            start_bound_s,
             first_frame_ms,
             connect_ms,
             bytes: counters.bytes_received,
@@ -877,11 +1025,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | to tolerance after each stop | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | to tolerance after each stop (start's bound) | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
         let stops: Vec<String> = s
@@ -894,7 +1042,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {}{} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
@@ -903,7 +1051,13 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.error_integral,
             s.max_sse_integral,
             s.block_error_integral,
+            s.floor_integral.map_or("—".into(), |f| format!(
+                "{f:.1} px·s ({:.1})",
+                s.error_integral - f
+            )),
             stops.join(", "),
+            s.start_bound_s
+                .map_or(String::new(), |b| format!(" (≥ {b:.2})")),
             s.bytes as f64 / 1e6,
             s.link_bytes_down as f64 / 1e6,
             s.needed_over_delivered
@@ -929,4 +1083,77 @@ pub fn summary_table(ss: &[Summary]) -> String {
 
 fn print_summary(ss: &[Summary]) {
     eprintln!("{}", summary_table(ss));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        a: FlightArgs,
+    }
+
+    fn args(db: &Path, trajectory: &str, duration: f64) -> FlightArgs {
+        let mut a = Cli::parse_from([
+            "flight",
+            "--db",
+            db.to_str().unwrap(),
+            "--link",
+            "1mbit,100ms",
+            "--out",
+            "/nonexistent",
+            "--trajectory",
+            trajectory,
+            "--duration",
+            &duration.to_string(),
+        ])
+        .a;
+        a.db = db.to_path_buf();
+        a
+    }
+
+    #[test]
+    fn start_bound_takes_the_chain_or_the_bytes() {
+        let link: LinkConfig = "1mbit,100ms".parse().unwrap();
+        let r = |bytes, chain| InstantReplay {
+            start_elevation: bytes,
+            start_chain: chain,
+            ..InstantReplay::default()
+        };
+        // Ten round trips of 0.2 s outweigh 10 kB at 125 kB/s.
+        let b = r(10_000, 10).start_bound_s(&link).unwrap();
+        assert!((b - 2.0).abs() < 1e-12, "{b}");
+        // 250 kB take 2 s after the first round trip.
+        let b = r(250_000, 2).start_bound_s(&link).unwrap();
+        assert!((b - 2.2).abs() < 1e-12, "{b}");
+        // Met before anything arrives.
+        assert_eq!(r(0, 0).start_bound_s(&link), Some(0.0));
+        let unlimited: LinkConfig = "loopback".parse().unwrap();
+        assert_eq!(r(10_000, 3).start_bound_s(&unlimited), None);
+    }
+
+    #[test]
+    fn instant_replay_meets_the_tolerance_every_frame() {
+        let db = crate::server::tests_support::tiny_db();
+        // static-low starts near the ground: its first view needs records.
+        let a = args(&db, "static-low", 2.0);
+        let r = instant_replay(&a, &Trajectory::builtin("static-low").unwrap()).unwrap();
+        assert_eq!(r.floor.len(), 61);
+        assert!(r
+            .floor
+            .iter()
+            .all(|&f| f.is_finite() && (0.0..=a.max_sse).contains(&f)));
+        assert!(r.floor_integral(a.fps) > 0.0);
+        assert!(
+            r.start_elevation > 0 && r.start_elevation < r.needed,
+            "{r:?}"
+        );
+        // The tiny planet has levels 0..=3: a chain of at most 4.
+        assert!((1..=4).contains(&r.start_chain), "{r:?}");
+        let bound = r.start_bound_s(&"1mbit,100ms".parse().unwrap()).unwrap();
+        assert!(bound >= 0.2 * r.start_chain as f64, "{bound}");
+    }
 }

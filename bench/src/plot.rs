@@ -35,6 +35,7 @@ pub fn policies_plot(
     title: &str,
     runs: &[(String, Vec<Row>)],
     tolerance: f64,
+    floor: Option<&[(f64, f64)]>,
 ) -> Result<()> {
     register();
     let root = BitMapBackend::new(path, (1400, 1300)).into_drawing_area();
@@ -119,6 +120,15 @@ pub fn policies_plot(
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
                 });
+        }
+        if let Some(f) = floor.filter(|_| k == 2) {
+            let pts: Vec<(f64, f64)> = f.iter().map(|&(t, y)| (t, y.max(y_lo))).collect();
+            let c = BLACK.mix(0.7);
+            chart
+                .draw_series(DashedLineSeries::new(pts, 6, 4, c.stroke_width(2)))
+                .map_err(|e| anyhow!("{e}"))?
+                .label("floor (every request answered at once)")
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c));
         }
         if k < 4 {
             chart
