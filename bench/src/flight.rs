@@ -23,6 +23,17 @@
 //! one of its pixels better and the block mean 20 px (the pixel mean goes
 //! from the 100 px block's share of the screen × 100 to × 65).
 //!
+//! Before the runs, the flight is replayed over the database file with
+//! every request answered at once ([`InstantReplay`]): the default policy
+//! converged at the tolerance at each frame. It gives the bytes the path
+//! needs (`needed_over_delivered`), the error the tolerance leaves whatever
+//! the link (`floor_error_integral_px_s`; a run's
+//! `excess_error_integral_px_s` is its integral less this floor: the error
+//! of data not yet arrived, the part scheduling can change), and a lower
+//! bound on the time to the tolerance at a stop at t = 0
+//! (`start_lower_bound_s`: a record's place is in its parent, so the start
+//! view's deepest record is a chain of round trips).
+//!
 //! `--transport` (repeatable) adds the transport as a dimension: `quic`
 //! (planet-server in process, through the UDP relay) and `http2` (the same
 //! file served by nginx over HTTPS byte ranges, through the TCP link: kernel
@@ -197,6 +208,9 @@ pub struct Row {
     pub sse_max: f64,
     pub sse_mean: f64,
     pub sse_pixel_mean: f64,
+    /// The instant replay's per-pixel mean SSE at this frame (NaN without
+    /// it): the floor under `sse_pixel_mean`.
+    pub sse_pixel_floor: f64,
     pub err_max: f64,
     pub err_mean: f64,
     pub probes: usize,
@@ -846,6 +860,9 @@ fn run_link(
             sse_max: st.max_screen_error,
             sse_mean: st.mean_screen_error,
             sse_pixel_mean: st.pixel_mean_screen_error,
+            sse_pixel_floor: instant
+                .and_then(|r| r.floor.get(n as usize).copied())
+                .unwrap_or(f64::NAN),
             err_max: emax,
             err_mean: if np > 0 { esum / np as f64 } else { f64::NAN },
             probes: np,
@@ -988,12 +1005,12 @@ async fn warm_up(session: &SessionConfig) -> Result<()> {
 
 fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
     let mut s = String::from(
-        "frame,t_s,bytes_total,bytes_frame,in_flight,sent,cancelled,cancelled_total,blocks,triangles,quality_factor,sse_max_px,sse_mean_px,sse_pixel_mean_px,true_err_max_m,true_err_mean_m,probes,relevant_ratio,cpu_ms,nodes,connected\n",
+        "frame,t_s,bytes_total,bytes_frame,in_flight,sent,cancelled,cancelled_total,blocks,triangles,quality_factor,sse_max_px,sse_mean_px,sse_pixel_mean_px,sse_pixel_floor_px,true_err_max_m,true_err_mean_m,probes,relevant_ratio,cpu_ms,nodes,connected\n",
     );
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{:.4},{},{},{},{},{},{},{},{},{:.1},{:.4},{:.4},{:.4},{:.3},{:.3},{},{:.5},{:.4},{},{}",
+            "{},{:.4},{},{},{},{},{},{},{},{},{:.1},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{},{:.5},{:.4},{},{}",
             r.frame,
             r.t,
             r.bytes_total,
@@ -1008,6 +1025,7 @@ fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
             r.sse_max,
             r.sse_mean,
             r.sse_pixel_mean,
+            r.sse_pixel_floor,
             r.err_max,
             r.err_mean,
             r.probes,
