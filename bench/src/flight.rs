@@ -597,11 +597,39 @@ fn start_needs(
     let mut header = header.clone();
     header.colour = None;
     let mut client = Client::new(header, cfg)?;
-    let (mut bytes, mut chain) = (0u64, 0u32);
-    for k in 0..400 {
-        let out = client.frame(camera, 1.0 / a.fps);
+    let (mut bytes, mut chain, mut met) = (0u64, 0u32, false);
+    converge(&mut client, file, camera, a.fps, |k, out| {
         if k == 0 && !out.draw.is_empty() && out.stats.max_screen_error <= a.max_sse {
-            return Ok((0, 0));
+            met = true;
+            return false;
+        }
+        for s in out.send.iter().filter(|s| !s.forced) {
+            bytes += u64::from(s.record.size);
+            chain = chain.max(u32::from(s.block.level) + 1);
+        }
+        true
+    })?;
+    Ok(if met { (0, 0) } else { (bytes, chain) })
+}
+
+/// Runs `client`'s frames at `camera`, answering every request from
+/// `file` in the same frame, until nothing is asked, pending or in flight
+/// (at most 400 frames). `each` sees every frame's output (its index
+/// first) before its requests are answered and stops the loop by returning
+/// false. Returns the last frame's per-pixel mean SSE.
+fn converge(
+    client: &mut Client,
+    file: &[u8],
+    camera: &planet_client::Camera,
+    fps: f64,
+    mut each: impl FnMut(usize, &planet_client::FrameOutput) -> bool,
+) -> Result<f64> {
+    let mut last = 0.0;
+    for k in 0..400 {
+        let out = client.frame(camera, 1.0 / fps);
+        last = out.stats.pixel_mean_screen_error;
+        if !each(k, &out) {
+            break;
         }
         let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
         for s in &out.send {
@@ -609,10 +637,6 @@ fn start_needs(
             let data = file
                 .get(o..o + len)
                 .with_context(|| format!("record at {o} + {len} outside the file"))?;
-            if !s.forced {
-                bytes += len as u64;
-                chain = chain.max(u32::from(s.block.level) + 1);
-            }
             client.deliver(s.id, Ok(data.to_vec()));
         }
         client.recycle(out.draw);
@@ -620,7 +644,7 @@ fn start_needs(
             break;
         }
     }
-    Ok((bytes, chain))
+    Ok(last)
 }
 
 fn instant_replay(a: &FlightArgs, traj: &Trajectory) -> Result<InstantReplay> {
@@ -641,26 +665,14 @@ fn instant_replay(a: &FlightArgs, traj: &Trajectory) -> Result<InstantReplay> {
     for n in 0..frames {
         let t = n as f64 / a.fps;
         let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
-        let mut floor = 0.0;
-        for _ in 0..400 {
-            let out = client.frame(&camera, 1.0 / a.fps);
-            floor = out.stats.pixel_mean_screen_error;
-            let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
+        let floor = converge(&mut client, &file, &camera, a.fps, |_, out| {
             for s in &out.send {
-                let (o, len) = (s.record.offset as usize, s.record.size as usize);
-                let bytes = file
-                    .get(o..o + len)
-                    .with_context(|| format!("record at {o} + {len} outside the file"))?;
                 if seen.insert((s.record.offset, s.record.size)) {
-                    out0.needed += len as u64;
+                    out0.needed += u64::from(s.record.size);
                 }
-                client.deliver(s.id, Ok(bytes.to_vec()));
             }
-            client.recycle(out.draw);
-            if !busy && client.queue().in_flight() == 0 {
-                break;
-            }
-        }
+            true
+        })?;
         out0.floor.push(floor);
     }
     Ok(out0)
