@@ -53,6 +53,7 @@ use clap::Args;
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::trajectory::Trajectory;
 use planet_client::{Client, ClientConfig, Policy};
+use planet_core::format::DbFile;
 use planet_core::BlockId;
 use planet_linksim::{Link, LinkConfig, TcpLink};
 use planet_preprocess::db::Sampler;
@@ -270,6 +271,14 @@ pub struct Summary {
     pub frames: u64,
 }
 
+impl Summary {
+    /// `error_integral` less the floor's: the error of data not yet
+    /// arrived, the part a scheduler changes.
+    pub fn excess_integral(&self) -> Option<f64> {
+        self.floor_integral.map(|f| self.error_integral - f)
+    }
+}
+
 /// Static segments of a trajectory: consecutive keyframes with equal poses.
 fn static_segments(t: &Trajectory) -> Vec<(f64, f64)> {
     let mut out = Vec::new();
@@ -359,6 +368,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
     let several = args.dbs.len() > 1;
     let mut summaries = Vec::new();
     let mut needed_per_db = Vec::new();
+    // Per database: its instant replay's floor (the plot's, with one).
     let mut floors: Vec<Option<Vec<f64>>> = Vec::new();
     // Per link: every (database, policy) run, for one overlaid plot.
     let mut per_link: Vec<Vec<(String, Vec<Row>)>> = vec![Vec::new(); args.links.len()];
@@ -407,7 +417,6 @@ pub fn run(args: FlightArgs) -> Result<()> {
             );
             Some(r)
         };
-        floors.push(needed.as_ref().map(|r| r.floor.clone()));
         let transports = a.transports.len() > 1;
         for (k, spec) in a.links.iter().enumerate() {
             for (&transport, &policy) in a
@@ -429,6 +438,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
                 summaries.push(s);
             }
         }
+        floors.push(needed.map(|r| r.floor));
     }
     // The floor in the plot when one database was flown.
     let floor: Option<Vec<(f64, f64)>> = match floors.as_slice() {
@@ -479,7 +489,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
             needed_over_delivered: s.needed_over_delivered,
             needed_bytes: needed,
             floor_error_integral_px_s: s.floor_integral,
-            excess_error_integral_px_s: s.floor_integral.map(|f| s.error_integral - f),
+            excess_error_integral_px_s: s.excess_integral(),
             start_lower_bound_s: s.start_bound_s,
             first_frame_ms: s.first_frame_ms,
             final_sse_max_px: s.final_sse_max,
@@ -587,18 +597,12 @@ fn replay_config(a: &FlightArgs) -> ClientConfig {
 /// a neighbour's forced ones (crack-free splits, which Cesium's skirts do
 /// not need). (0, 0) where the view meets the tolerance before any record
 /// arrives.
-fn start_needs(
-    file: &[u8],
-    header: &planet_core::format::Header,
-    cfg: ClientConfig,
-    camera: &planet_client::Camera,
-    a: &FlightArgs,
-) -> Result<(u64, u32)> {
-    let mut header = header.clone();
+fn start_needs(db: &DbFile, camera: &planet_client::Camera, a: &FlightArgs) -> Result<(u64, u32)> {
+    let mut header = db.header.clone();
     header.colour = None;
-    let mut client = Client::new(header, cfg)?;
+    let mut client = Client::new(header, replay_config(a))?;
     let (mut bytes, mut chain, mut met) = (0u64, 0u32, false);
-    converge(&mut client, file, camera, a.fps, |k, out| {
+    converge(&mut client, db, camera, a.fps, |k, out| {
         if k == 0 && !out.draw.is_empty() && out.stats.max_screen_error <= a.max_sse {
             met = true;
             return false;
@@ -613,13 +617,13 @@ fn start_needs(
 }
 
 /// Runs `client`'s frames at `camera`, answering every request from
-/// `file` in the same frame, until nothing is asked, pending or in flight
+/// `db` in the same frame, until nothing is asked, pending or in flight
 /// (at most 400 frames). `each` sees every frame's output (its index
 /// first) before its requests are answered and stops the loop by returning
 /// false. Returns the last frame's per-pixel mean SSE.
 fn converge(
     client: &mut Client,
-    file: &[u8],
+    db: &DbFile,
     camera: &planet_client::Camera,
     fps: f64,
     mut each: impl FnMut(usize, &planet_client::FrameOutput) -> bool,
@@ -633,11 +637,10 @@ fn converge(
         }
         let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
         for s in &out.send {
-            let (o, len) = (s.record.offset as usize, s.record.size as usize);
-            let data = file
-                .get(o..o + len)
-                .with_context(|| format!("record at {o} + {len} outside the file"))?;
-            client.deliver(s.id, Ok(data.to_vec()));
+            let data = db
+                .read_record(&s.record)
+                .with_context(|| format!("record at {} + {}", s.record.offset, s.record.size))?;
+            client.deliver(s.id, Ok(data));
         }
         client.recycle(out.draw);
         if !busy && client.queue().in_flight() == 0 {
@@ -648,10 +651,8 @@ fn converge(
 }
 
 fn instant_replay(a: &FlightArgs, traj: &Trajectory) -> Result<InstantReplay> {
-    let file = std::fs::read(&a.db).with_context(|| format!("reading {}", a.db.display()))?;
-    let sampler = Sampler::open(&a.db)?;
-    let header = sampler.header().clone();
-    let datum = header.datum;
+    let db = DbFile::open(&a.db).with_context(|| format!("opening {}", a.db.display()))?;
+    let datum = db.header.datum;
     let mut seen: std::collections::HashSet<(u64, u32)> = Default::default();
     let mut out0 = InstantReplay::default();
     let duration = a.duration.unwrap_or(traj.duration()).min(traj.duration());
@@ -659,13 +660,12 @@ fn instant_replay(a: &FlightArgs, traj: &Trajectory) -> Result<InstantReplay> {
     let aspect = 16.0 / 9.0;
     let fov = 60f64.to_radians();
     let camera = traj.camera_at(0.0, &datum, fov, aspect, a.viewport_height);
-    (out0.start_elevation, out0.start_chain) =
-        start_needs(&file, &header, replay_config(a), &camera, a)?;
-    let mut client = Client::new(header, replay_config(a))?;
+    (out0.start_elevation, out0.start_chain) = start_needs(&db, &camera, a)?;
+    let mut client = Client::new(db.header.clone(), replay_config(a))?;
     for n in 0..frames {
         let t = n as f64 / a.fps;
         let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
-        let floor = converge(&mut client, &file, &camera, a.fps, |_, out| {
+        let floor = converge(&mut client, &db, &camera, a.fps, |_, out| {
             for s in &out.send {
                 if seen.insert((s.record.offset, s.record.size)) {
                     out0.needed += u64::from(s.record.size);
@@ -1081,10 +1081,10 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.error_integral,
             s.max_sse_integral,
             s.block_error_integral,
-            s.floor_integral.map_or("—".into(), |f| format!(
-                "{f:.1} px·s ({:.1})",
-                s.error_integral - f
-            )),
+            match (s.floor_integral, s.excess_integral()) {
+                (Some(f), Some(x)) => format!("{f:.1} px·s ({x:.1})"),
+                _ => "—".into(),
+            },
             stops.join(", "),
             s.start_bound_s
                 .map_or(String::new(), |b| format!(" (≥ {b:.2})")),
