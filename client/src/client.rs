@@ -4,14 +4,19 @@
 //! docs/REFERENCES.md), driven by the caller instead of owning threads for the
 //! network:
 //!
-//! 1. at frame start, apply the refines finished by the decode workers and
-//!    execute the split/merge operations selected last frame (re-checking
-//!    their constraints), so a frame never sees half a change;
+//! 1. at frame start, apply the refines finished by the decode workers
+//!    (with [`ClientConfig::decode_wait_s`], after waiting that long at most
+//!    for those delivered before the frame) and execute the split/merge
+//!    operations selected last frame (re-checking their constraints), so a
+//!    frame never sees half a change;
 //! 2. update the quality factor from the previous frame's measurement;
 //! 3. traverse both trees ([`crate::selection`]) with the horizon-fitted view;
 //! 4. select load requests ([`crate::request_queue`]): new ones to send,
 //!    in-flight ones to cancel; select the split/merge operations for the
-//!    next frame start.
+//!    next frame start. With [`ClientConfig::eager_children`] the children
+//!    of the blocks to split are asked now, from the references and bounds
+//!    in their parent's record; one whose answer comes before the split is
+//!    executed is held until it is.
 //!
 //! The network layer sends each [`Outgoing`] request (one stream per request
 //! in QUIC), cancels each id of [`FrameOutput::cancel`], and hands every
@@ -27,9 +32,9 @@ use crate::link_estimate::LinkEstimator;
 use crate::quality::{QualityConfig, QualityController, QualityMode};
 use crate::refinement::{sanitize_tolerance, Footprint, Kind, Policy, Refiner, DEFAULT_MAX_SSE_PX};
 use crate::request_queue::{
-    select_tree_ops, OpKind, QueueConfig, RequestQueue, RetryBackoff, TreeOp,
+    select_tree_ops, LoadRequest, OpKind, QueueConfig, RequestQueue, RetryBackoff, TreeOp,
 };
-use crate::selection::{colour_holds_split, DrawBlock, Selector};
+use crate::selection::{children_loads, colour_holds_split, DrawBlock, Selector};
 use crate::stats::{FrameStats, Totals};
 use crate::tree::{
     decode_record, Decoded, FastMap, FastSet, FirstLod, HeaderError, PartialTree, RefineError,
@@ -42,6 +47,7 @@ use planet_core::BlockId;
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 use thiserror::Error;
 
 /// Client parameters.
@@ -71,6 +77,15 @@ pub struct ClientConfig {
     /// Request only blocks still visible in the view predicted for when
     /// their answer is applied ([`crate::view_prediction`]).
     pub predict_view: bool,
+    /// Request the LOD 0 of a splitting block's children in the frame that
+    /// chooses the split, instead of in the next one, where the split is
+    /// executed ([`Client::frame`]): one frame less per tree level on the
+    /// way down.
+    pub eager_children: bool,
+    /// At frame start, wait up to this many seconds for the records
+    /// delivered before the frame to finish decoding, so that they are
+    /// applied in it rather than in the next (0: apply what is finished).
+    pub decode_wait_s: f64,
 }
 
 impl Default for ClientConfig {
@@ -84,12 +99,23 @@ impl ClientConfig {
     /// The configuration of `policy` at pixel tolerance `max_sse_px`, with
     /// the policy's own queue (see [`crate::refinement`] for the sources):
     ///
-    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window |
-    /// |---|---|---|---|---|---|---|
-    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP |
-    /// | thesis | 16 | any | after 2 frames | by 2 | no | count |
-    /// | cesium | 18 | 20 | never | no | no | count |
-    /// | breadth | 16 | any | after 2 frames | no | no | count |
+    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests |
+    /// |---|---|---|---|---|---|---|---|
+    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 |
+    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 |
+    /// | cesium | 18 | 20 | never | no | no | count | 3 |
+    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 |
+    ///
+    /// The last column: a record delivered before frame `a` is applied in
+    /// frame `a` and its children requested at the end of it
+    /// ([`ClientConfig::decode_wait_s`], [`ClientConfig::eager_children`]),
+    /// or decoded on a worker during `a`, applied in `a + 1`, split at the
+    /// start of `a + 2` and its children requested at its end. The latter
+    /// is CesiumJS's pipeline (docs/REFERENCES.md, "CesiumJS tile
+    /// pipeline"): a received tile is transformed on a web worker
+    /// (`RECEIVED → TRANSFORMING`) by the load queue at the end of frame
+    /// `a`, made `READY` at the end of `a + 1`, and refined by the
+    /// selection of `a + 2`, whose load queue requests the children.
     pub fn for_policy(policy: Policy, max_sse_px: f64) -> ClientConfig {
         let base = QueueConfig::default();
         let (queue, predict_view, link_window) = match policy {
@@ -134,9 +160,19 @@ impl ClientConfig {
             decode_threads: 2,
             quality: QualityConfig::default(),
             predict_view,
+            eager_children: policy == Policy::Ours,
+            decode_wait_s: if policy == Policy::Ours {
+                DECODE_WAIT_S
+            } else {
+                0.0
+            },
         }
     }
 }
+
+/// [`ClientConfig::decode_wait_s`] of `ours`: 2 ms, an eighth of a 60 Hz
+/// frame, against a few hundred microseconds to decode a record.
+pub const DECODE_WAIT_S: f64 = 0.002;
 
 /// Why a client cannot start.
 #[derive(Debug, Error)]
@@ -276,6 +312,9 @@ pub struct Client {
     r_min: f64,
     r_max: f64,
     pending_ops: Vec<TreeOp>,
+    /// Records of children whose parent's split waits for the next frame
+    /// start, with the frame their request was sent in.
+    parked: Vec<(LoadRequest, Vec<u8>, u64)>,
     decoding: FastSet<(Tree, BlockId)>,
     /// Blocks whose load failed or was rejected, held back exponentially.
     backoff: RetryBackoff,
@@ -346,6 +385,7 @@ impl Client {
             r_min,
             r_max,
             pending_ops: vec![],
+            parked: vec![],
             decoding: FastSet::default(),
             backoff: RetryBackoff::default(),
             jobs,
@@ -478,6 +518,27 @@ impl Client {
         }
     }
 
+    /// Wait at most `seconds` for the records handed to the workers to be
+    /// decoded ([`ClientConfig::decode_wait_s`]).
+    fn wait_for_decodes_within(&self, seconds: f64) {
+        let Ok(limit) = Duration::try_from_secs_f64(seconds) else {
+            return;
+        };
+        let deadline = Instant::now() + limit;
+        let (m, cv) = &*self.outstanding;
+        let Ok(mut n) = m.lock() else { return };
+        while *n > 0 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return;
+            }
+            n = match cv.wait_timeout(n, left) {
+                Ok((n, _)) => n,
+                Err(_) => return,
+            };
+        }
+    }
+
     /// Hand over the response to request `id` (or its failure). A
     /// [`TransportError::Connection`] is handled as
     /// [`Client::connection_failed`]; a [`TransportError::Request`] backs
@@ -517,11 +578,32 @@ impl Client {
             }
         };
         self.since_last.bytes_received += bytes.len() as u64;
-        let Some((width, codec)) = self.tree.tree(req.tree).map(|t| (t.width, t.codec)) else {
-            self.since_last.bytes_dropped += bytes.len() as u64;
+        // A child requested in the frame that chose its parent's split
+        // ([`ClientConfig::eager_children`]) whose answer came before the
+        // split was executed (a link faster than a frame): held until the
+        // next frame start executes it.
+        if self.tree.first_lod(req.tree, &req.block).is_none()
+            && self.pending_ops.iter().any(|o| {
+                o.kind == OpKind::Split && o.tree == req.tree && Some(o.block) == req.block.parent()
+            })
+        {
+            self.decoding.insert((req.tree, req.block));
+            self.parked.push((req, bytes, sent_frame));
             return;
-        };
-        let Some(first) = self.tree.first_lod(req.tree, &req.block) else {
+        }
+        self.dispatch(req, bytes, sent_frame);
+    }
+
+    /// Hand a received record to the decode workers (or decode it inline),
+    /// or drop it when its block no longer wants it.
+    fn dispatch(&mut self, req: LoadRequest, bytes: Vec<u8>, sent_frame: u64) {
+        let first = self
+            .tree
+            .tree(req.tree)
+            .map(|t| (t.width, t.codec))
+            .zip(self.tree.first_lod(req.tree, &req.block));
+        let Some(((width, codec), first)) = first else {
+            self.decoding.remove(&(req.tree, req.block));
             self.since_last.bytes_dropped += bytes.len() as u64;
             return;
         };
@@ -573,18 +655,12 @@ impl Client {
         self.backoff.waiting(self.clock)
     }
 
-    /// One frame: apply finished work, select, request.
-    pub fn frame(&mut self, camera: &Camera, dt: f64) -> FrameOutput {
-        self.frame += 1;
-        let mut stats = std::mem::take(&mut self.since_last);
-        stats.frame = self.frame;
-        if dt.is_finite() && dt > 0.0 {
-            self.clock += dt;
-        }
-        self.link
-            .on_frame(dt, stats.bytes_received, self.queue.in_flight() > 0);
-        // 1. Finished refines.
-        let mut applied: Vec<(Tree, BlockId, usize, bool)> = vec![];
+    /// Apply the refines the decode workers have finished (frame step 1).
+    fn apply_finished(
+        &mut self,
+        stats: &mut FrameStats,
+        applied: &mut Vec<(Tree, BlockId, usize, bool)>,
+    ) {
         while let Ok(d) = self.done_rx.try_recv() {
             self.decoding.remove(&(d.tree, d.block));
             match d.result {
@@ -610,6 +686,25 @@ impl Client {
                 }
             }
         }
+    }
+
+    /// One frame: apply finished work, select, request.
+    pub fn frame(&mut self, camera: &Camera, dt: f64) -> FrameOutput {
+        self.frame += 1;
+        let mut stats = std::mem::take(&mut self.since_last);
+        stats.frame = self.frame;
+        if dt.is_finite() && dt > 0.0 {
+            self.clock += dt;
+        }
+        self.link
+            .on_frame(dt, stats.bytes_received, self.queue.in_flight() > 0);
+        // 1. Finished refines (those delivered before this frame, when the
+        // configuration waits for them).
+        if self.jobs.is_some() && self.config.decode_wait_s > 0.0 {
+            self.wait_for_decodes_within(self.config.decode_wait_s);
+        }
+        let mut applied: Vec<(Tree, BlockId, usize, bool)> = vec![];
+        self.apply_finished(&mut stats, &mut applied);
         // 1b. Split/merge selected last frame, constraints re-checked.
         for op in std::mem::take(&mut self.pending_ops) {
             let r = match op.kind {
@@ -622,6 +717,17 @@ impl Client {
                     OpKind::Merge => stats.merges += 1,
                 }
             }
+        }
+        // Children's records that came before their parent's split: the
+        // split is done, they are applied now.
+        if !self.parked.is_empty() {
+            for (req, bytes, sent_frame) in std::mem::take(&mut self.parked) {
+                self.dispatch(req, bytes, sent_frame);
+            }
+            if self.jobs.is_some() {
+                self.wait_for_decodes_within(self.config.decode_wait_s);
+            }
+            self.apply_finished(&mut stats, &mut applied);
         }
         // 2. Quality factor.
         let qf = self.quality.update(dt, self.last_triangles as f64);
@@ -656,6 +762,18 @@ impl Client {
             .as_ref()
             .filter(|_| self.config.policy != Policy::Thesis)
             .map(|pv| Refiner::new(self.config.policy, pv, qf, tol));
+        let ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
+        let eager = if self.config.eager_children {
+            children_loads(
+                tree,
+                &ops,
+                &view,
+                &refiner,
+                predicted.as_ref().zip(later.as_ref()),
+            )
+        } else {
+            vec![]
+        };
         let (ew, cw) = (
             tree.elevation().width as f64,
             tree.colour().map_or(0.0, |c| c.width as f64),
@@ -711,6 +829,7 @@ impl Client {
                 // while the colour block still wants them at arrival.
                 r.tree == Tree::Elevation && colour_holds_split(tree, later, &r.block, &fp)
             })
+            .chain(eager)
             .collect();
         if self.config.link_window {
             self.queue.set_window_bytes(Some(self.link.window_bytes()));
@@ -730,7 +849,7 @@ impl Client {
                 forced: r.forced,
             })
             .collect();
-        self.pending_ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
+        self.pending_ops = ops;
         // Stats.
         let draw = sel.draw;
         // A record's samples are drawn when its block is drawn at LOD 0, or

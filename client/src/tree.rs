@@ -847,6 +847,21 @@ impl PartialTree {
         Ok(())
     }
 
+    /// The elevation leaves a split of `id` would create, without splitting:
+    /// each child's id, LOD 0 record and bounds, as [`PartialTree::split`]
+    /// makes them. `None` when `id` cannot split now.
+    pub fn split_children(&self, id: &BlockId) -> Option<[(BlockId, ChildRef, BlockBounds); 4]> {
+        self.can_split(Tree::Elevation, id).ok()?;
+        let refs = self.elevation.get(id)?.child_refs.as_ref()?;
+        if refs.len() != 4 {
+            return None;
+        }
+        Some(std::array::from_fn(|k| {
+            let cid = id.child(k);
+            (cid, refs[k], bounds_of(&self.header, cid, &refs[k]))
+        }))
+    }
+
     /// Merge `id`'s children back into it (after checking every constraint).
     pub fn merge(&mut self, kind: Tree, id: &BlockId) -> Result<(), Blocked> {
         self.can_merge(kind, id)?;

@@ -555,18 +555,32 @@ fn sse_refines_exactly_above_the_tolerance() {
             let out = c.frame(&cam, 1.0 / 60.0);
             for o in out.send.iter().filter(|o| !o.forced) {
                 let t = c.tree();
-                let n = t.tree(o.tree).and_then(|x| x.get(&o.block)).expect("node");
-                let b = t
-                    .elevation()
-                    .get(&o.block)
-                    .and_then(|e| e.bounds.clone())
-                    .expect("bounds");
+                // A child of a block whose split this frame chose is asked
+                // before the split is executed (ClientConfig::eager_children):
+                // its record and bounds are those the split will give it.
+                let (error, b) = match t.tree(o.tree).and_then(|x| x.get(&o.block)) {
+                    Some(n) => {
+                        let b = t.elevation().get(&o.block).and_then(|e| e.bounds.clone());
+                        (n.record.error, (*b.expect("bounds")).clone())
+                    }
+                    None => {
+                        let p = o.block.parent().expect("a root always exists");
+                        assert!(
+                            c.pending_ops().iter().any(|op| op.block == p),
+                            "{:?} asked without its parent's split pending",
+                            o.block
+                        );
+                        let kids = t.split_children(&p).expect("the parent can split");
+                        let (_, r, b) = kids[o.block.child_index()].clone();
+                        (r.error, b)
+                    }
+                };
                 let (kind, w) = match o.tree {
                     Tree::Elevation => (Kind::Elevation, t.elevation().width),
                     Tree::Colour => (Kind::Colour, t.colour().expect("colour").width),
                 };
                 let fp = Footprint::of(&b);
-                let m = r.measure(kind, &fp, w as f64, n.record.error as f64, 0.0);
+                let m = r.measure(kind, &fp, w as f64, error as f64, 0.0);
                 // An elevation block may also be refined for its colour:
                 // colour splits only under split elevation (§4.4.1), so a
                 // colour leaf whose LOD 0 texels are coarser than the
@@ -694,4 +708,117 @@ fn a_record_that_keeps_failing_is_retried_with_exponential_backoff() {
         (4..=6).contains(&requests),
         "{requests} requests in 120 frames"
     );
+}
+
+/// `ours` asks a splitting block's children in the frame that chooses the
+/// split (`ClientConfig::eager_children`): a descent from orbit to the
+/// ground converges in fewer frames than with the children asked a frame
+/// later, sends no request twice, and loses no byte, also when the answers
+/// come before the next frame executes the split (a link faster than a
+/// frame: they wait for it).
+#[test]
+fn children_are_asked_in_the_frame_that_splits() {
+    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 2_000.0);
+    let cam = Camera::look_at(
+        eye,
+        surface(DVec3::new(1.0, 0.13, 0.21), 0.0),
+        eye.normalize(),
+    );
+    let run = |eager: bool, latency: u64| {
+        let cfg = ClientConfig {
+            decode_threads: 0,
+            eager_children: eager,
+            ..ClientConfig::for_policy(Policy::Ours, 1.0)
+        };
+        let mut c = Client::new(db().header.clone(), cfg).expect("client");
+        let mut s = FakeServer::new(latency);
+        let (mut early, mut quiet) = (0, 0);
+        for frame in 0..4000u32 {
+            let out = c.frame(&cam, 1.0 / 60.0);
+            early += out
+                .send
+                .iter()
+                .filter(|o| c.tree().elevation().get(&o.block).is_none())
+                .count();
+            s.submit(&out);
+            for (id, bytes) in s.tick(db()) {
+                c.deliver(id, Ok(bytes));
+            }
+            let idle = out.send.is_empty()
+                && c.queue().in_flight() == 0
+                && c.pending_ops().is_empty()
+                && c.decoding() == 0
+                && s.pending() == 0;
+            quiet = if idle { quiet + 1 } else { 0 };
+            if quiet >= 3 {
+                let max = out.draw.iter().map(|d| d.screen_error).fold(0.0, f64::max);
+                let t = c.totals();
+                let blocks: std::collections::HashSet<_> =
+                    s.log.iter().map(|o| (o.tree, o.block)).collect();
+                assert_eq!(blocks.len(), s.log.len(), "a block asked twice");
+                c.tree().validate().expect("valid");
+                return (frame, early, max, t.bytes_dropped, t.bytes_received);
+            }
+        }
+        panic!("no convergence (eager {eager}, latency {latency})");
+    };
+    for latency in [0, 1, 4] {
+        let (f_late, e_late, max_late, drop_late, _) = run(false, latency);
+        let (f_eager, e_eager, max_eager, drop_eager, bytes) = run(true, latency);
+        eprintln!(
+            "latency {latency}: {f_late} → {f_eager} frames, {e_eager} children asked early, \
+             {bytes} B"
+        );
+        assert_eq!(e_late, 0);
+        assert!(e_eager > 0, "no child asked in its parent's split frame");
+        assert!(
+            f_eager < f_late,
+            "{f_eager} frames, not fewer than {f_late}"
+        );
+        assert_eq!((drop_late, drop_eager), (0, 0), "bytes dropped");
+        assert!(
+            max_late <= 1.0 && max_eager <= 1.0,
+            "{max_late} {max_eager}"
+        );
+    }
+}
+
+/// `ours` waits at frame start for the records delivered before it to be
+/// decoded by the workers (`ClientConfig::decode_wait_s`): each frame
+/// applies every record that came before it, never a frame later. (The
+/// wait is 2 ms by default; a second here, so that a loaded test machine
+/// cannot make the workers miss it. Without the wait the second frame
+/// already fails.)
+#[test]
+fn records_delivered_before_a_frame_are_applied_in_it() {
+    let cfg = ClientConfig {
+        decode_threads: 2,
+        decode_wait_s: 1.0,
+        ..ClientConfig::for_policy(Policy::Ours, 1.0)
+    };
+    let mut c = Client::new(db().header.clone(), cfg).expect("client");
+    let mut s = FakeServer::new(0);
+    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 3_000.0);
+    let cam = Camera::look_at(
+        eye,
+        surface(DVec3::new(1.0, 0.13, 0.21), 0.0),
+        eye.normalize(),
+    );
+    let mut delivered = 0;
+    for _ in 0..200 {
+        let out = c.frame(&cam, 1.0 / 60.0);
+        assert_eq!(
+            out.stats.refines_applied + out.stats.records_rejected,
+            delivered,
+            "frame {}: records delivered before it not all applied",
+            out.stats.frame
+        );
+        s.submit(&out);
+        let due = s.tick(db());
+        delivered = due.len();
+        for (id, bytes) in due {
+            c.deliver(id, Ok(bytes));
+        }
+    }
+    assert!(c.totals().refines_applied > 5);
 }

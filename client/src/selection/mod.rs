@@ -36,6 +36,7 @@
 use crate::refinement::{Footprint, Kind, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{Blocked, PartialTree};
+use crate::visibility::View;
 use planet_core::format::Tree;
 use planet_core::{BlockId, Edge};
 
@@ -209,6 +210,57 @@ impl Ctx<'_> {
             Err(_) => {}
         }
     }
+}
+
+/// The loads that the children of the elevation blocks split by `ops`
+/// would trigger as visible leaves at LOD 1 (the leaf rule of both
+/// traversals: a fresh leaf has no child errors yet), asked in the frame
+/// that chooses the split rather than in the next, where it is executed
+/// ([`ClientConfig::eager_children`](crate::ClientConfig::eager_children)).
+/// With `later` (the view predicted for the answer's arrival and its
+/// refiner), a child is asked only if it is visible there too and still
+/// needs its LOD 0 by the ball's distance, as every other request is.
+pub(crate) fn children_loads(
+    tree: &PartialTree,
+    ops: &[TreeOp],
+    view: &View,
+    refiner: &Refiner,
+    later: Option<(&View, &Refiner)>,
+) -> Vec<LoadRequest> {
+    let w = tree.elevation().width as f64;
+    let mut out = vec![];
+    for op in ops {
+        if op.kind != OpKind::Split || op.tree != Tree::Elevation {
+            continue;
+        }
+        let Some(children) = tree.split_children(&op.block) else {
+            continue;
+        };
+        for (id, record, bounds) in children {
+            if !view.is_visible(&bounds) {
+                continue;
+            }
+            let err1 = record.error as f64;
+            let m = refiner.measure(Kind::Elevation, &Footprint::of(&bounds), w, err1, 0.0);
+            if !refiner.leaf(&m, 1).load {
+                continue;
+            }
+            if let Some((pv, lr)) = later {
+                let ml = lr.measure(Kind::Elevation, &Footprint::ball(&bounds), w, err1, 0.0);
+                if !pv.is_visible(&bounds) || !lr.leaf(&ml, 1).load {
+                    continue;
+                }
+            }
+            out.push(LoadRequest {
+                tree: Tree::Elevation,
+                block: id,
+                record,
+                importance: refiner.load_priority(&m, 1, id.level, bounds.centre, record.size),
+                forced: false,
+            });
+        }
+    }
+    out
 }
 
 /// Whether the colour leaf with the id of an elevation block wants its
