@@ -528,6 +528,20 @@ fn predicted_view_requests_waste_less_while_descending() {
     );
 }
 
+/// Hand a frame's requests to the fake server, deliver what is due; whether
+/// the client is idle (nothing sent, in flight, pending, decoding or due).
+fn exchange(c: &mut Client, s: &mut FakeServer, out: &FrameOutput) -> bool {
+    s.submit(out);
+    for (id, bytes) in s.tick(db()) {
+        c.deliver(id, Ok(bytes));
+    }
+    out.send.is_empty()
+        && c.queue().in_flight() == 0
+        && c.pending_ops().is_empty()
+        && c.decoding() == 0
+        && s.pending() == 0
+}
+
 /// The default policy refines exactly where the screen-space error is above
 /// the tolerance (client/src/refinement.rs): every request it sends (not
 /// forced by a neighbour's split, §4.3.3) is for a block whose first LOD is
@@ -607,14 +621,7 @@ fn sse_refines_exactly_above_the_tolerance() {
                 );
                 sent += 1;
             }
-            s.submit(&out);
-            for (id, bytes) in s.tick(db()) {
-                c.deliver(id, Ok(bytes));
-            }
-            let idle = out.send.is_empty()
-                && c.queue().in_flight() == 0
-                && c.pending_ops().is_empty()
-                && s.pending() == 0;
+            let idle = exchange(&mut c, &mut s, &out);
             quiet = if idle { quiet + 1 } else { 0 };
             last = Some(out);
             if quiet >= 3 {
@@ -740,15 +747,7 @@ fn children_are_asked_in_the_frame_that_splits() {
                 .iter()
                 .filter(|o| c.tree().elevation().get(&o.block).is_none())
                 .count();
-            s.submit(&out);
-            for (id, bytes) in s.tick(db()) {
-                c.deliver(id, Ok(bytes));
-            }
-            let idle = out.send.is_empty()
-                && c.queue().in_flight() == 0
-                && c.pending_ops().is_empty()
-                && c.decoding() == 0
-                && s.pending() == 0;
+            let idle = exchange(&mut c, &mut s, &out);
             quiet = if idle { quiet + 1 } else { 0 };
             if quiet >= 3 {
                 let max = out.draw.iter().map(|d| d.screen_error).fold(0.0, f64::max);
