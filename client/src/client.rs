@@ -508,33 +508,43 @@ impl Client {
     /// Block until every record handed to the workers has been decoded (for
     /// tests and benchmarks; a renderer never needs to wait).
     pub fn wait_for_decodes(&self) {
-        let (m, cv) = &*self.outstanding;
-        let Ok(mut n) = m.lock() else { return };
-        while *n > 0 {
-            n = match cv.wait(n) {
-                Ok(n) => n,
-                Err(_) => return,
-            };
+        self.wait_for_decodes_until(None);
+    }
+
+    /// At frame start: wait up to [`ClientConfig::decode_wait_s`] for the
+    /// records delivered before the frame (none without workers).
+    fn wait_for_delivered(&self) {
+        if self.jobs.is_none() {
+            return;
+        }
+        if let Ok(limit) = Duration::try_from_secs_f64(self.config.decode_wait_s) {
+            if !limit.is_zero() {
+                self.wait_for_decodes_until(Some(Instant::now() + limit));
+            }
         }
     }
 
-    /// Wait at most `seconds` for the records handed to the workers to be
-    /// decoded ([`ClientConfig::decode_wait_s`]).
-    fn wait_for_decodes_within(&self, seconds: f64) {
-        let Ok(limit) = Duration::try_from_secs_f64(seconds) else {
-            return;
-        };
-        let deadline = Instant::now() + limit;
+    /// Wait until the workers have decoded every record handed to them, or
+    /// until `deadline`.
+    fn wait_for_decodes_until(&self, deadline: Option<Instant>) {
         let (m, cv) = &*self.outstanding;
         let Ok(mut n) = m.lock() else { return };
         while *n > 0 {
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return;
-            }
-            n = match cv.wait_timeout(n, left) {
-                Ok((n, _)) => n,
-                Err(_) => return,
+            n = match deadline {
+                None => match cv.wait(n) {
+                    Ok(n) => n,
+                    Err(_) => return,
+                },
+                Some(d) => {
+                    let left = d.saturating_duration_since(Instant::now());
+                    if left.is_zero() {
+                        return;
+                    }
+                    match cv.wait_timeout(n, left) {
+                        Ok((n, _)) => n,
+                        Err(_) => return,
+                    }
+                }
             };
         }
     }
@@ -582,7 +592,7 @@ impl Client {
         // ([`ClientConfig::eager_children`]) whose answer came before the
         // split was executed (a link faster than a frame): held until the
         // next frame start executes it.
-        if self.tree.first_lod(req.tree, &req.block).is_none()
+        if !self.tree.wants_refine(req.tree, &req.block)
             && self.pending_ops.iter().any(|o| {
                 o.kind == OpKind::Split && o.tree == req.tree && Some(o.block) == req.block.parent()
             })
@@ -700,9 +710,7 @@ impl Client {
             .on_frame(dt, stats.bytes_received, self.queue.in_flight() > 0);
         // 1. Finished refines (those delivered before this frame, when the
         // configuration waits for them).
-        if self.jobs.is_some() && self.config.decode_wait_s > 0.0 {
-            self.wait_for_decodes_within(self.config.decode_wait_s);
-        }
+        self.wait_for_delivered();
         let mut applied: Vec<(Tree, BlockId, usize, bool)> = vec![];
         self.apply_finished(&mut stats, &mut applied);
         // 1b. Split/merge selected last frame, constraints re-checked.
@@ -724,9 +732,7 @@ impl Client {
             for (req, bytes, sent_frame) in std::mem::take(&mut self.parked) {
                 self.dispatch(req, bytes, sent_frame);
             }
-            if self.jobs.is_some() {
-                self.wait_for_decodes_within(self.config.decode_wait_s);
-            }
+            self.wait_for_delivered();
             self.apply_finished(&mut stats, &mut applied);
         }
         // 2. Quality factor.
@@ -815,14 +821,10 @@ impl Client {
                     Tree::Elevation => (Kind::Elevation, ew),
                     Tree::Colour => (Kind::Colour, cw),
                 };
-                // The ball's distance (a lower bound of the footprint's): a
-                // request is dropped only when even that says it is not
-                // needed.
-                let fp = Footprint::ball(b);
-                let m = later.measure(kind, &fp, w, n.record.error as f64, 0.0);
-                if later.leaf(&m, n.lod).load {
+                if later.loads_at_arrival(kind, b, w, n.record.error as f64, n.lod) {
                     return true;
                 }
+                let fp = Footprint::ball(b);
                 // An elevation load that colour asked for (its colour block
                 // wants children finer than the geometry needs, and may
                 // split only under a split elevation block, §4.4.1): kept

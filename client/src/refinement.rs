@@ -501,6 +501,22 @@ impl Refiner {
         }
     }
 
+    /// Whether a leaf with LOD `lod` and bounds `b` still needs its LOD 0
+    /// by this refiner (the view predicted for the answer's arrival), at
+    /// the distance of its ball, a lower bound of its footprint's: a request
+    /// is dropped only when even that says it is not needed.
+    pub fn loads_at_arrival(
+        &self,
+        kind: Kind,
+        b: &BlockBounds,
+        width: f64,
+        err1: f64,
+        lod: u8,
+    ) -> bool {
+        let m = self.measure(kind, &Footprint::ball(b), width, err1, 0.0);
+        self.leaf(&m, lod).load
+    }
+
     /// Priority (higher first) of loading LOD 0 of a leaf with LOD `lod`,
     /// at `level`, centred at `centre`, whose record is `size` bytes.
     pub fn load_priority(&self, m: &Measure, lod: u8, level: u8, centre: DVec3, size: u32) -> f64 {

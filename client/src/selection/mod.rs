@@ -246,8 +246,9 @@ pub(crate) fn children_loads(
                 continue;
             }
             if let Some((pv, lr)) = later {
-                let ml = lr.measure(Kind::Elevation, &Footprint::ball(&bounds), w, err1, 0.0);
-                if !pv.is_visible(&bounds) || !lr.leaf(&ml, 1).load {
+                if !pv.is_visible(&bounds)
+                    || !lr.loads_at_arrival(Kind::Elevation, &bounds, w, err1, 1)
+                {
                     continue;
                 }
             }
