@@ -32,7 +32,8 @@
 //! of data not yet arrived, the part scheduling can change), and a lower
 //! bound on the time to the tolerance at a stop at t = 0
 //! (`start_lower_bound_s`: a record's place is in its parent, so the start
-//! view's deepest record is a chain of round trips).
+//! view's deepest record is a chain of round trips, two levels each at
+//! most with the child tables of `LodRefsRequest`).
 //!
 //! `--transport` (repeatable) adds the transport as a dimension: `quic`
 //! (planet-server in process, through the UDP relay) and `http2` (the same
@@ -348,7 +349,8 @@ struct JsonSummary<'a> {
     /// data not yet arrived.
     excess_error_integral_px_s: Option<f64>,
     /// A lower bound on `time_to_1px_after_stops_s` of a stop at t = 0
-    /// (one round trip and the start view's elevation bytes at the link's
+    /// ([`InstantReplay::start_bound_s`]: the start chain's round trips, or
+    /// one round trip and the start view's elevation bytes at the link's
     /// rate).
     start_lower_bound_s: Option<f64>,
     first_frame_ms: f64,
@@ -543,9 +545,11 @@ pub struct InstantReplay {
     /// its parent). 0 where the first frame met it before any record
     /// arrived.
     pub start_elevation: u64,
-    /// The longest chain of those records: the deepest one's level + 1. A record's place in the file is in
-    /// its parent (docs/FORMAT.md), so each link of the chain costs a
-    /// round trip.
+    /// The longest chain of those records: the deepest one's level + 1. A
+    /// record's place in the file is in its parent (docs/FORMAT.md), and
+    /// the child tables of a `LodRefsRequest` (docs/PROTOCOL.md §4.8) reach
+    /// one level further: the root's round trip, then two levels per round
+    /// trip at most.
     pub start_chain: u32,
     /// Per frame: the per-pixel mean SSE of its converged view, the error
     /// that remains at the tolerance whatever the link.
@@ -561,8 +565,9 @@ impl InstantReplay {
 
     /// A lower bound on the time to the tolerance at a stop that starts
     /// at t = 0 over `link` (0 where the first frame meets it before any
-    /// record arrives): the larger of a round trip per link of
-    /// [`InstantReplay::start_chain`] and one round trip plus the start's
+    /// record arrives): the larger of the round trips of
+    /// [`InstantReplay::start_chain`] (one for the root, then one per two
+    /// levels) and one round trip plus the start's
     /// elevation bytes at the link's rate (framing, the congestion
     /// controller's start-up and decoding left out). `None` for an
     /// unlimited link.
@@ -572,7 +577,8 @@ impl InstantReplay {
             return Some(0.0);
         }
         link.bandwidth_bps.filter(|&b| b > 0).map(|b| {
-            (self.start_chain as f64 * rtt).max(rtt + self.start_elevation as f64 * 8.0 / b as f64)
+            let trips = 1 + self.start_chain.saturating_sub(1).div_ceil(2);
+            (trips as f64 * rtt).max(rtt + self.start_elevation as f64 * 8.0 / b as f64)
         })
     }
 }
@@ -1153,9 +1159,12 @@ mod tests {
             start_chain: chain,
             ..InstantReplay::default()
         };
-        // Ten round trips of 0.2 s outweigh 10 kB at 125 kB/s.
+        // A chain of ten levels: the root, then two levels per round trip,
+        // six round trips of 0.2 s, outweigh 10 kB at 125 kB/s.
         let b = r(10_000, 10).start_bound_s(&link).unwrap();
-        assert!((b - 2.0).abs() < 1e-12, "{b}");
+        assert!((b - 1.2).abs() < 1e-12, "{b}");
+        let b = r(10_000, 11).start_bound_s(&link).unwrap();
+        assert!((b - 1.2).abs() < 1e-12, "{b}");
         // 250 kB take 2 s after the first round trip.
         let b = r(250_000, 2).start_bound_s(&link).unwrap();
         assert!((b - 2.2).abs() < 1e-12, "{b}");
@@ -1184,6 +1193,6 @@ mod tests {
         // The tiny planet has levels 0..=3: a chain of at most 4.
         assert!((1..=4).contains(&r.start_chain), "{r:?}");
         let bound = r.start_bound_s(&"1mbit,100ms".parse().unwrap()).unwrap();
-        assert!(bound >= 0.2 * r.start_chain as f64, "{bound}");
+        assert!(bound >= 0.1 * r.start_chain as f64, "{bound}");
     }
 }

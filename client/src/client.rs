@@ -16,7 +16,9 @@
 //!    next frame start. With [`ClientConfig::eager_children`] the children
 //!    of the blocks to split are asked now, from the references and bounds
 //!    in their parent's record; one whose answer comes before the split is
-//!    executed is held until it is.
+//!    executed is held until it is. With [`ClientConfig::lookahead`] the
+//!    children that those children's split would ask are asked too, from
+//!    the child tables that came with a record ([`crate::lookahead`]).
 //!
 //! The network layer sends each [`Outgoing`] request (one stream per request
 //! in QUIC), cancels each id of [`FrameOutput::cancel`], and hands every
@@ -29,6 +31,7 @@
 //! frame's selection.
 
 use crate::link_estimate::LinkEstimator;
+use crate::lookahead::{wants_tables, Lookahead};
 use crate::quality::{QualityConfig, QualityController, QualityMode};
 use crate::refinement::{sanitize_tolerance, Footprint, Kind, Policy, Refiner, DEFAULT_MAX_SSE_PX};
 use crate::request_queue::{
@@ -86,6 +89,15 @@ pub struct ClientConfig {
     /// delivered before the frame to finish decoding, so that they are
     /// applied in it rather than in the next (0: apply what is finished).
     pub decode_wait_s: f64,
+    /// Ask the children's tables with the records of blocks likely to
+    /// descend, and the children of a coming block's split before its
+    /// record arrives ([`crate::lookahead`]): two tree levels per round
+    /// trip. Needs a transport that carries `LodRefsRequest`
+    /// ([`Outgoing::refs`]); without one, it only uses held records. Only
+    /// while the link's window ([`ClientConfig::link_window`]) is at most
+    /// half full: when the rate binds rather than the round trip, nothing
+    /// is asked ahead.
+    pub lookahead: bool,
 }
 
 impl Default for ClientConfig {
@@ -99,14 +111,17 @@ impl ClientConfig {
     /// The configuration of `policy` at pixel tolerance `max_sse_px`, with
     /// the policy's own queue (see [`crate::refinement`] for the sources):
     ///
-    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests |
-    /// |---|---|---|---|---|---|---|---|
-    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 |
-    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 |
-    /// | cesium | 18 | 20 | never | no | no | count | 3 |
-    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 |
+    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests | levels per round trip |
+    /// |---|---|---|---|---|---|---|---|---|
+    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 | 2 |
+    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 | 1 |
+    /// | cesium | 18 | 20 | never | no | no | count | 3 | 1 |
+    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 | 1 |
     ///
-    /// The last column: a record delivered before frame `a` is applied in
+    /// Levels per round trip: [`ClientConfig::lookahead`]; CesiumJS
+    /// requests a tile's children only once the tile is rendered
+    /// (`QuadtreePrimitive`'s traversal refines loaded tiles only). The
+    /// column before it: a record delivered before frame `a` is applied in
     /// frame `a` and its children requested at the end of it
     /// ([`ClientConfig::decode_wait_s`], [`ClientConfig::eager_children`]),
     /// or decoded on a worker during `a`, applied in `a + 1`, split at the
@@ -161,6 +176,7 @@ impl ClientConfig {
             quality: QualityConfig::default(),
             predict_view,
             eager_children: policy == Policy::Ours,
+            lookahead: policy == Policy::Ours,
             decode_wait_s: if policy == Policy::Ours {
                 DECODE_WAIT_S
             } else {
@@ -250,6 +266,11 @@ pub struct Outgoing {
     pub importance: f64,
     /// Forced by a neighbour's split (visibility ignored, §4.3.3).
     pub forced: bool,
+    /// Ask for the child tables of the record's children too
+    /// (`LodRefsRequest`, docs/PROTOCOL.md §4.8; [`crate::lookahead`]). A
+    /// transport that cannot may send a plain request: the client then
+    /// gets the record alone.
+    pub refs: bool,
 }
 
 /// What one frame produced.
@@ -312,9 +333,13 @@ pub struct Client {
     r_min: f64,
     r_max: f64,
     pending_ops: Vec<TreeOp>,
-    /// Records of children whose parent's split waits for the next frame
-    /// start, with the frame their request was sent in.
-    parked: Vec<(LoadRequest, Vec<u8>, u64)>,
+    /// Records that came before their block exists (its parent's split
+    /// waits for the next frame start, or its parent's record is still
+    /// coming, [`crate::lookahead`]), with the frame their request was sent
+    /// in and the frame they came in.
+    parked: Vec<(LoadRequest, Vec<u8>, u64, u64)>,
+    /// Child references learned early ([`crate::lookahead`]).
+    lookahead: Lookahead,
     decoding: FastSet<(Tree, BlockId)>,
     /// Blocks whose load failed or was rejected, held back exponentially.
     backoff: RetryBackoff,
@@ -386,6 +411,7 @@ impl Client {
             r_max,
             pending_ops: vec![],
             parked: vec![],
+            lookahead: Lookahead::new(),
             decoding: FastSet::default(),
             backoff: RetryBackoff::default(),
             jobs,
@@ -579,7 +605,7 @@ impl Client {
             }
             return;
         };
-        let bytes = match result {
+        let mut bytes = match result {
             Ok(b) => b,
             Err(e) => {
                 self.last_error = Some(error_chain(&e));
@@ -588,17 +614,38 @@ impl Client {
             }
         };
         self.since_last.bytes_received += bytes.len() as u64;
-        // A child requested in the frame that chose its parent's split
+        // The child tables after the record (`LodRefsRequest`).
+        if bytes.len() > req.record.size as usize {
+            let trailer = bytes.split_off(req.record.size as usize);
+            if req.tree == Tree::Elevation && self.config.lookahead {
+                self.lookahead
+                    .learn_tables(req.block, &bytes, &trailer, self.frame);
+            }
+        }
+        // A record whose block does not exist yet: a child requested in the
+        // frame that chose its parent's split
         // ([`ClientConfig::eager_children`]) whose answer came before the
-        // split was executed (a link faster than a frame): held until the
-        // next frame start executes it.
-        if !self.tree.wants_refine(req.tree, &req.block)
-            && self.pending_ops.iter().any(|o| {
-                o.kind == OpKind::Split && o.tree == req.tree && Some(o.block) == req.block.parent()
-            })
+        // split was executed (a link faster than a frame), or a grandchild
+        // asked ahead of its parent's record ([`ClientConfig::lookahead`]).
+        // Held until its block exists.
+        let early = self
+            .tree
+            .tree(req.tree)
+            .is_some_and(|t| t.get(&req.block).is_none());
+        if early
+            && (self.config.lookahead
+                || self.pending_ops.iter().any(|o| {
+                    o.kind == OpKind::Split
+                        && o.tree == req.tree
+                        && Some(o.block) == req.block.parent()
+                }))
+            && self.parked.len() < crate::lookahead::MAX_ENTRIES
         {
+            if req.tree == Tree::Elevation && self.config.lookahead {
+                self.lookahead.learn_record(req.block, &bytes, self.frame);
+            }
             self.decoding.insert((req.tree, req.block));
-            self.parked.push((req, bytes, sent_frame));
+            self.parked.push((req, bytes, sent_frame, self.frame));
             return;
         }
         self.dispatch(req, bytes, sent_frame);
@@ -728,13 +775,33 @@ impl Client {
         }
         // Children's records that came before their parent's split: the
         // split is done, they are applied now.
+        // Children's records that came before their parent's split: the
+        // split is done, they are applied now. Those whose block does not
+        // exist yet wait (their parent's record is still coming), up to
+        // KEEP_FRAMES.
         if !self.parked.is_empty() {
-            for (req, bytes, sent_frame) in std::mem::take(&mut self.parked) {
-                self.dispatch(req, bytes, sent_frame);
+            let mut sent = false;
+            for (req, bytes, sent_frame, came) in std::mem::take(&mut self.parked) {
+                let exists = self
+                    .tree
+                    .tree(req.tree)
+                    .is_some_and(|t| t.get(&req.block).is_some());
+                if exists {
+                    self.dispatch(req, bytes, sent_frame);
+                    sent = true;
+                } else if self.frame.saturating_sub(came) <= crate::lookahead::KEEP_FRAMES {
+                    self.parked.push((req, bytes, sent_frame, came));
+                } else {
+                    self.decoding.remove(&(req.tree, req.block));
+                    stats.bytes_dropped += bytes.len() as u64;
+                }
             }
-            self.wait_for_delivered();
-            self.apply_finished(&mut stats, &mut applied);
+            if sent {
+                self.wait_for_delivered();
+                self.apply_finished(&mut stats, &mut applied);
+            }
         }
+        self.lookahead.prune(&self.tree, self.frame);
         // 2. Quality factor.
         let qf = self.quality.update(dt, self.last_triangles as f64);
         // 3. Selection. Over the memory budget the tolerance coarsens by
@@ -754,7 +821,7 @@ impl Client {
         let sel = self.selector.select(&self.tree, &view, &refiner);
         // 4. Requests.
         let tree = &self.tree;
-        let mut cancel = self.queue.retain_relevant(|t, b| tree.wants_refine(t, b));
+
         // Only blocks still visible when the answer will be applied
         // (view_prediction.rs); forced neighbour loads ignore visibility.
         let predicted = self
@@ -780,6 +847,54 @@ impl Client {
         } else {
             vec![]
         };
+        // Asking ahead shortens a chain of round trips; when the link's
+        // window is more than half full, the rate binds, not the round
+        // trip, and a request asked ahead (or a child table) would only
+        // take the place of one needed now.
+        let lookahead = self.config.lookahead
+            && (!self.config.link_window
+                || self.queue.bytes_in_flight() * 2 <= self.link.window_bytes());
+        let ahead_loads = if lookahead {
+            let e = tree.elevation();
+            let seeds: Vec<(BlockId, ChildRef)> = eager
+                .iter()
+                .map(|r| (r.block, r.record))
+                .chain(
+                    self.queue
+                        .in_flight_requests()
+                        .filter(|r| r.tree == Tree::Elevation)
+                        .map(|r| (r.block, r.record)),
+                )
+                .chain(
+                    self.parked
+                        .iter()
+                        .filter(|p| p.0.tree == Tree::Elevation)
+                        .map(|p| (p.0.block, p.0.record)),
+                )
+                .chain(
+                    self.decoding
+                        .iter()
+                        .filter(|(t, _)| *t == Tree::Elevation)
+                        .filter_map(|(_, b)| e.get(b).map(|n| (*b, n.record))),
+                )
+                .collect();
+            let (pv, lr) = match predicted.as_ref().zip(later.as_ref()) {
+                Some((pv, lr)) => (pv, lr),
+                None => (&view, &refiner),
+            };
+            self.lookahead
+                .loads(tree, seeds, &self.decoding, (pv, lr), &refiner, self.frame)
+        } else {
+            vec![]
+        };
+        // In flight, a block that no longer wants its LOD 0 is cancelled; a
+        // block asked ahead of its parent's split does not exist yet, and
+        // stays in flight while this frame asks it.
+        let asked_ahead: FastSet<BlockId> =
+            eager.iter().chain(&ahead_loads).map(|r| r.block).collect();
+        let mut cancel = self.queue.retain_relevant(|t, b| {
+            tree.wants_refine(t, b) || (t == Tree::Elevation && asked_ahead.contains(b))
+        });
         let (ew, cw) = (
             tree.elevation().width as f64,
             tree.colour().map_or(0.0, |c| c.width as f64),
@@ -831,7 +946,13 @@ impl Client {
                 // while the colour block still wants them at arrival.
                 r.tree == Tree::Elevation && colour_holds_split(tree, later, &r.block, &fp)
             })
-            .chain(eager)
+            .chain(
+                eager
+                    .into_iter()
+                    .chain(ahead_loads)
+                    .filter(|r| !self.decoding.contains(&(r.tree, r.block)))
+                    .filter(|r| self.backoff.ready(r.tree, &r.block, self.clock)),
+            )
             .collect();
         if self.config.link_window {
             self.queue.set_window_bytes(Some(self.link.window_bytes()));
@@ -839,6 +960,7 @@ impl Client {
         self.queue.set_clock(self.clock);
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
+        let known = &self.lookahead;
         let send: Vec<Outgoing> = chosen
             .send
             .into_iter()
@@ -849,6 +971,9 @@ impl Client {
                 block: r.block,
                 importance: r.importance,
                 forced: r.forced,
+                refs: lookahead
+                    && r.tree == Tree::Elevation
+                    && wants_tables(tree, known, &refiner, r.block, &r.record),
             })
             .collect();
         self.pending_ops = ops;

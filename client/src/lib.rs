@@ -41,6 +41,7 @@
 pub mod client;
 pub mod importance;
 pub mod link_estimate;
+pub mod lookahead;
 pub mod quality;
 pub mod refinement;
 pub mod request_queue;

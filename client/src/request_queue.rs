@@ -238,6 +238,11 @@ impl RequestQueue {
         Some(f.request)
     }
 
+    /// The requests in flight, in no particular order.
+    pub fn in_flight_requests(&self) -> impl Iterator<Item = &LoadRequest> {
+        self.in_flight.values().map(|f| &f.request)
+    }
+
     /// Cancel every in-flight request for which `relevant` is false.
     pub fn retain_relevant(
         &mut self,

@@ -862,6 +862,13 @@ impl PartialTree {
         }))
     }
 
+    /// The conservative bounds of elevation block `id` whose record is `r`
+    /// (what [`PartialTree::split`] gives the node), for a block that is
+    /// not in the tree yet.
+    pub fn bounds_of(&self, id: BlockId, r: &ChildRef) -> BlockBounds {
+        bounds_of(&self.header, id, r)
+    }
+
     /// Merge `id`'s children back into it (after checking every constraint).
     pub fn merge(&mut self, kind: Tree, id: &BlockId) -> Result<(), Blocked> {
         self.can_merge(kind, id)?;

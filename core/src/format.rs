@@ -677,6 +677,132 @@ pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, F
     })
 }
 
+/// Marks a child whose table the server could not give (its record failed
+/// to read or its checksum): the client learns nothing about it early.
+pub const CHILD_TABLE_UNKNOWN: u8 = 0xff;
+
+/// Largest trailer of child tables: four children, each a count byte and
+/// four references.
+pub const MAX_CHILD_TABLES_LEN: usize = 4 * (1 + 4 * CHILD_REF_LEN);
+
+/// The child references of a record whose checksum was already checked:
+/// the fixed fields and the references only (no CRC, no payload), each
+/// reference checked against `file_len` when known.
+pub fn record_child_refs(
+    bytes: &[u8],
+    file_len: Option<u64>,
+) -> Result<Vec<ChildRef>, FormatError> {
+    let len = peek_record_len(bytes)? as usize;
+    if len != bytes.len() {
+        return Err(FormatError::Length {
+            what: "record",
+            stored: len as u64,
+            got: bytes.len() as u64,
+        });
+    }
+    let count = bytes[11] as usize;
+    if count != 0 && count != 4 {
+        return Err(FormatError::Field(format!("{count} children")));
+    }
+    need(
+        "record children",
+        bytes,
+        RECORD_FIXED_LEN + CHILD_REF_LEN * count + 4,
+    )?;
+    (0..count)
+        .map(|k| {
+            let c = ChildRef::read(&bytes[RECORD_FIXED_LEN + CHILD_REF_LEN * k..]);
+            c.check(file_len).map(|()| c)
+        })
+        .collect()
+}
+
+/// Encodes the **child tables** of a record's children, the trailer of the
+/// protocol's `LodRefsRequest` (docs/PROTOCOL.md §4.8, after Google Earth's
+/// bulk metadata, docs/REFERENCES.md): for each child `k` of the record, in
+/// order, one count byte (`0` leaf, `4`, or [`CHILD_TABLE_UNKNOWN`]), then
+/// that many 24-byte [child references](ChildRef) (the grandchildren's).
+pub fn encode_child_tables(tables: &[Option<Vec<ChildRef>>]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(tables.len() * (1 + 4 * CHILD_REF_LEN));
+    for t in tables {
+        match t {
+            Some(refs) if refs.is_empty() || refs.len() == 4 => {
+                out.push(refs.len() as u8);
+                for r in refs {
+                    r.write(&mut out);
+                }
+            }
+            _ => out.push(CHILD_TABLE_UNKNOWN),
+        }
+    }
+    out
+}
+
+/// The trailer of child tables for `record` (whose checksum the caller has
+/// checked), reading each child's record with `read`: a child whose read
+/// fails (`None`), whose checksum fails or whose references do not check
+/// is marked unknown. What a server answers to `LodRefsRequest`.
+pub fn child_tables_for<B: AsRef<[u8]>>(
+    record: &[u8],
+    file_len: Option<u64>,
+    mut read: impl FnMut(&ChildRef) -> Option<B>,
+) -> Result<Vec<u8>, FormatError> {
+    let children = record_child_refs(record, file_len)?;
+    let tables: Vec<Option<Vec<ChildRef>>> = children
+        .iter()
+        .map(|c| {
+            let b = read(c)?;
+            let b = b.as_ref();
+            (b.len() == c.size as usize && record_checksum_ok(b))
+                .then(|| record_child_refs(b, file_len).ok())
+                .flatten()
+        })
+        .collect();
+    Ok(encode_child_tables(&tables))
+}
+
+/// Parses a trailer of [`encode_child_tables`] for a record with `count`
+/// children: exactly `count` tables and no byte after them, every reference
+/// checked as a record's own (finite, sizes and `file_len`). `None` is a
+/// child the server marked unknown.
+pub fn parse_child_tables(
+    bytes: &[u8],
+    count: usize,
+    file_len: Option<u64>,
+) -> Result<Vec<Option<Vec<ChildRef>>>, FormatError> {
+    let mut at = 0usize;
+    let mut out = Vec::with_capacity(count);
+    for _ in 0..count {
+        need("child tables", bytes, at + 1)?;
+        let n = bytes[at];
+        at += 1;
+        match n {
+            CHILD_TABLE_UNKNOWN => out.push(None),
+            0 | 4 => {
+                let n = n as usize;
+                need("child tables", bytes, at + n * CHILD_REF_LEN)?;
+                let mut refs = Vec::with_capacity(n);
+                for k in 0..n {
+                    let c = ChildRef::read(&bytes[at + k * CHILD_REF_LEN..]);
+                    c.check(file_len)?;
+                    refs.push(c);
+                }
+                at += n * CHILD_REF_LEN;
+                out.push(Some(refs));
+            }
+            n => return Err(FormatError::Field(format!("child table of {n} references"))),
+        }
+    }
+    if at != bytes.len() {
+        return Err(FormatError::Length {
+            what: "child tables",
+            stored: at as u64,
+            got: bytes.len() as u64,
+        });
+    }
+    Ok(out)
+}
+
 /// Writes a database linearly under a temporary name; [`DbWriter::finish`]
 /// appends the header, writes the superblock last, syncs and renames.
 ///
@@ -985,6 +1111,52 @@ impl DbFile {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn child_tables_round_trip_and_reject_garbage() {
+        let r = |o: u64| ChildRef {
+            offset: o,
+            size: 40,
+            error: 1.5,
+            min_elevation: -3.0,
+            max_elevation: 9.0,
+        };
+        let tables = vec![
+            Some(vec![r(64), r(104), r(144), r(184)]),
+            Some(vec![]),
+            None,
+            Some(vec![r(224), r(264), r(304), r(344)]),
+        ];
+        let b = encode_child_tables(&tables);
+        assert_eq!(b.len(), 4 + 8 * CHILD_REF_LEN);
+        assert!(b.len() <= MAX_CHILD_TABLES_LEN);
+        assert_eq!(parse_child_tables(&b, 4, Some(1000)).unwrap(), tables);
+        // Too few tables, a byte too many, a bad count, a reference past
+        // the file's end: all errors.
+        assert!(parse_child_tables(&b, 5, None).is_err());
+        let mut longer = b.clone();
+        longer.push(0);
+        assert!(parse_child_tables(&longer, 4, None).is_err());
+        let mut bad = b.clone();
+        bad[0] = 3;
+        assert!(parse_child_tables(&bad, 4, None).is_err());
+        assert!(parse_child_tables(&b, 4, Some(300)).is_err());
+        for cut in 0..b.len() {
+            assert!(parse_child_tables(&b[..cut], 4, None).is_err());
+        }
+        // A record's references read back without its checksum.
+        let rec = encode_record(
+            Tree::Elevation,
+            BlockId::new(Face::ALL[0], 1, 0, 1).unwrap(),
+            &[r(64), r(104), r(144), r(184)],
+            &crate::codec::Payload {
+                raw_len: 3,
+                bytes: vec![1, 2, 3],
+            },
+        );
+        assert_eq!(record_child_refs(&rec, None).unwrap()[1], r(104));
+        assert!(record_child_refs(&rec[..rec.len() - 1], None).is_err());
+    }
 
     fn sample_header(colour: bool) -> Header {
         let ew = 8u16;

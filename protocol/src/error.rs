@@ -97,6 +97,17 @@ pub enum ProtocolError {
         /// The head's `body_len`.
         got: u32,
     },
+    /// A successful response head to a `LodRefsRequest` announces a body
+    /// length outside `size ..= size + MAX_REFS_TRAILER_LEN`.
+    #[error("response body_len {got} is outside {min}..={max} (the record and its child tables)")]
+    BodyLengthOutOfRange {
+        /// The requested size (the record alone).
+        min: u32,
+        /// The requested size plus [`crate::MAX_REFS_TRAILER_LEN`].
+        max: u64,
+        /// The head's `body_len`.
+        got: u32,
+    },
     /// The response stream ended before `body_len` body bytes arrived.
     #[error("response body truncated: {received} of {expected} bytes")]
     ShortBody {
@@ -138,6 +149,7 @@ impl ProtocolError {
             | ProtocolError::UnexpectedMessage { .. }
             | ProtocolError::ResponseIdMismatch { .. }
             | ProtocolError::BodyLengthMismatch { .. }
+            | ProtocolError::BodyLengthOutOfRange { .. }
             | ProtocolError::ShortBody { .. }
             | ProtocolError::TrailingData { .. } => ErrorCode::Malformed,
         }

@@ -37,7 +37,9 @@ pub const MAX_FRAME_LEN: u32 = 64 * 1024;
 pub const MAX_WELCOME_FRAME_LEN: u32 = MAX_HEADER_LEN as u32 + MAX_FRAME_LEN;
 
 /// Exact size on the wire of a [`LodRequest`] frame, prefix included: a
-/// server can read a request stream to its end with this limit.
+/// server can read a request stream to its end with this limit. A
+/// `LodRefsRequest` frame ([`Message::LodRefsRequest`]) has the same body
+/// and the same size.
 pub const LOD_REQUEST_FRAME_LEN: usize = FRAME_HEADER_LEN + 8 + 8 + 4;
 
 /// Exact size on the wire of a successful [`ResponseHead`] frame, prefix included.
@@ -61,11 +63,14 @@ pub enum MessageType {
     LodRequest = 0x10,
     /// [`ResponseHead`], server -> client, request stream.
     ResponseHead = 0x11,
+    /// [`Message::LodRefsRequest`] (a [`LodRequest`] body), client -> server,
+    /// request stream: the record, then its children's child tables.
+    LodRefsRequest = 0x12,
 }
 
 impl MessageType {
     /// Every message type.
-    pub const ALL: [MessageType; 7] = [
+    pub const ALL: [MessageType; 8] = [
         MessageType::Hello,
         MessageType::Welcome,
         MessageType::Error,
@@ -73,6 +78,7 @@ impl MessageType {
         MessageType::Cancel,
         MessageType::LodRequest,
         MessageType::ResponseHead,
+        MessageType::LodRefsRequest,
     ];
 
     /// Parses a type byte.
@@ -85,6 +91,7 @@ impl MessageType {
             0x05 => MessageType::Cancel,
             0x10 => MessageType::LodRequest,
             0x11 => MessageType::ResponseHead,
+            0x12 => MessageType::LodRefsRequest,
             _ => return None,
         })
     }
@@ -112,6 +119,7 @@ impl MessageType {
             MessageType::Cancel => "cancel",
             MessageType::LodRequest => "lod_request",
             MessageType::ResponseHead => "response_head",
+            MessageType::LodRefsRequest => "lod_refs_request",
         }
     }
 }
@@ -132,6 +140,7 @@ pub fn encode_frame_into(msg: &Message, out: &mut Vec<u8>) -> Result<(), Protoco
         Message::Cancel(m) => encode_body_frame(m, out),
         Message::LodRequest(m) => encode_body_frame(m, out),
         Message::ResponseHead(m) => encode_body_frame(m, out),
+        Message::LodRefsRequest(m) => encode_body_frame_as(m, MessageType::LodRefsRequest, out),
     }
 }
 
@@ -146,16 +155,26 @@ pub(crate) fn encode_body_frame<T: WireBody>(
     body: &T,
     out: &mut Vec<u8>,
 ) -> Result<(), ProtocolError> {
+    encode_body_frame_as(body, T::TYPE, out)
+}
+
+/// [`encode_body_frame`] under another type byte than the body's own (a
+/// `LodRefsRequest` frame carries a [`LodRequest`] body).
+pub(crate) fn encode_body_frame_as<T: WireBody>(
+    body: &T,
+    msg_type: MessageType,
+    out: &mut Vec<u8>,
+) -> Result<(), ProtocolError> {
     body.check()?;
     let start = out.len();
     out.extend_from_slice(&[0; LEN_PREFIX_LEN]);
-    out.push(T::TYPE.as_u8());
-    if let Err(e) = codec::encode_into(body, T::TYPE, out) {
+    out.push(msg_type.as_u8());
+    if let Err(e) = codec::encode_into(body, msg_type, out) {
         out.truncate(start);
         return Err(e);
     }
     let len = out.len() - start - LEN_PREFIX_LEN;
-    let max = T::TYPE.max_frame_len();
+    let max = msg_type.max_frame_len();
     if len > max as usize {
         out.truncate(start);
         return Err(ProtocolError::FrameTooLarge {
@@ -226,6 +245,9 @@ fn decode_body(msg_type: MessageType, body: &[u8]) -> Result<Message, ProtocolEr
         }
         MessageType::ResponseHead => {
             codec::decode_exact::<ResponseHead, CONTROL>(body, msg_type)?.into()
+        }
+        MessageType::LodRefsRequest => {
+            Message::LodRefsRequest(codec::decode_exact::<LodRequest, CONTROL>(body, msg_type)?)
         }
     };
     msg.validate()?;

@@ -6,9 +6,11 @@
 //! `docs/PROTOCOL.md`.
 //!
 //! - [`frame`]: `u32 LE length | u8 type | body` framing, [`FrameDecoder`].
-//! - [`message`]: [`Hello`], [`Welcome`], [`LodRequest`], [`ResponseHead`],
+//! - [`message`]: [`Hello`], [`Welcome`], [`LodRequest`] (sent as a
+//!   `LodRequest` or a `LodRefsRequest`, [`RequestKind`]), [`ResponseHead`],
 //!   [`Cancel`], [`ErrorMsg`], [`Goodbye`] and the [`Message`] sum type.
-//! - [`response`]: request streams (request frame; head + raw record body).
+//! - [`response`]: request streams (request frame; head + raw record body,
+//!   plus the child tables for a `LodRefsRequest`).
 //! - [`state`]: [`ClientHandshake`], [`ServerSession`], [`InFlight`].
 //! - [`error_code`]: stable [`ErrorCode`]s and QUIC application codes.
 //! - `codec` (private): the only user of bincode 2.0.1.
@@ -29,10 +31,13 @@ pub use frame::{
     RESPONSE_HEAD_OK_FRAME_LEN,
 };
 pub use message::{
-    Cancel, ErrorMsg, Goodbye, Hello, Limits, LodRequest, Message, ResponseHead, Status, Welcome,
-    MAX_ERROR_MESSAGE_LEN, MAX_HEADER_LEN, MAX_NAME_LEN,
+    Cancel, ErrorMsg, Goodbye, Hello, Limits, LodRequest, Message, RequestKind, ResponseHead,
+    Status, Welcome, MAX_ERROR_MESSAGE_LEN, MAX_HEADER_LEN, MAX_NAME_LEN, MAX_REFS_TRAILER_LEN,
 };
-pub use response::{check_head, decode_request_stream, decode_response, Response, ResponseDecoder};
+pub use response::{
+    check_head, check_head_kind, decode_any_request_stream, decode_request_stream, decode_response,
+    decode_response_with_refs, Response, ResponseDecoder,
+};
 pub use state::{
     Authorizer, ClientHandshake, HandshakeOutcome, InFlight, InFlightError, ServerEvent,
     ServerSession, SessionState,

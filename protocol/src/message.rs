@@ -134,6 +134,61 @@ pub struct LodRequest {
     pub size: u32,
 }
 
+/// What a request stream asks for: the frame type that carries its
+/// [`LodRequest`] body.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum RequestKind {
+    /// `LodRequest` (0x10): the record's bytes.
+    Record,
+    /// `LodRefsRequest` (0x12): the record's bytes, then the child tables of
+    /// its children (at most [`MAX_REFS_TRAILER_LEN`] bytes).
+    RecordAndRefs,
+}
+
+impl RequestKind {
+    /// The frame type of requests of this kind.
+    pub const fn msg_type(self) -> MessageType {
+        match self {
+            RequestKind::Record => MessageType::LodRequest,
+            RequestKind::RecordAndRefs => MessageType::LodRefsRequest,
+        }
+    }
+
+    /// The largest number of body bytes after the record in a successful
+    /// response: 0, or [`MAX_REFS_TRAILER_LEN`].
+    pub const fn max_trailer_len(self) -> u32 {
+        match self {
+            RequestKind::Record => 0,
+            RequestKind::RecordAndRefs => MAX_REFS_TRAILER_LEN,
+        }
+    }
+
+    /// `req` as a message of this kind.
+    pub const fn message(self, req: LodRequest) -> Message {
+        match self {
+            RequestKind::Record => Message::LodRequest(req),
+            RequestKind::RecordAndRefs => Message::LodRefsRequest(req),
+        }
+    }
+}
+
+/// Largest trailer after the record in the response to a `LodRefsRequest`:
+/// four children, each a count byte and four 24-byte child references
+/// (4 × (1 + 4 × 24) = 388; equal to `planet_core::format::MAX_CHILD_TABLES_LEN`,
+/// which the server's tests check).
+pub const MAX_REFS_TRAILER_LEN: u32 = 4 * (1 + 4 * 24);
+
+impl LodRequest {
+    /// Encodes this request as one complete frame of `kind`: a `LodRequest`
+    /// frame (as [`LodRequest::encode_frame`]) or a `LodRefsRequest` frame,
+    /// both [`crate::LOD_REQUEST_FRAME_LEN`] bytes.
+    pub fn encode_frame_as(&self, kind: RequestKind) -> Result<Vec<u8>, ProtocolError> {
+        let mut out = Vec::new();
+        crate::frame::encode_body_frame_as(self, kind.msg_type(), &mut out)?;
+        Ok(out)
+    }
+}
+
 /// Outcome of a [`LodRequest`].
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
 pub enum Status {
@@ -146,7 +201,9 @@ pub enum Status {
 /// Server -> client, first thing on a request stream's response side.
 ///
 /// On [`Status::Ok`] it is followed by exactly `body_len` raw bytes
-/// (`body_len` == the request's `size`), then the stream is finished.
+/// (`body_len` == the request's `size`; for a `LodRefsRequest`, `size` plus
+/// a trailer of at most [`MAX_REFS_TRAILER_LEN`] bytes), then the stream is
+/// finished.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Encode, Decode)]
 pub struct ResponseHead {
     /// The request's id.
@@ -280,6 +337,10 @@ pub enum Message {
     LodRequest(LodRequest),
     /// See [`ResponseHead`].
     ResponseHead(ResponseHead),
+    /// A [`LodRequest`] that also asks for the child tables of the record's
+    /// children ([`RequestKind::RecordAndRefs`]); type byte 0x12, the same
+    /// body as [`Message::LodRequest`].
+    LodRefsRequest(LodRequest),
 }
 
 impl Message {
@@ -293,6 +354,7 @@ impl Message {
             Message::Cancel(_) => MessageType::Cancel,
             Message::LodRequest(_) => MessageType::LodRequest,
             Message::ResponseHead(_) => MessageType::ResponseHead,
+            Message::LodRefsRequest(_) => MessageType::LodRefsRequest,
         }
     }
 
@@ -306,6 +368,7 @@ impl Message {
             Message::Cancel(m) => m.check(),
             Message::LodRequest(m) => m.check(),
             Message::ResponseHead(m) => m.check(),
+            Message::LodRefsRequest(m) => m.check(),
         }
     }
 

@@ -1,47 +1,81 @@
-//! Request streams: one [`LodRequest`] frame from the client, one
-//! [`ResponseHead`] frame plus raw record bytes from the server.
+//! Request streams: one [`LodRequest`] frame (type `LodRequest` or
+//! `LodRefsRequest`, [`RequestKind`]) from the client, one [`ResponseHead`]
+//! frame plus raw bytes from the server.
 //!
-//! The record body is not bincode-framed: it is exactly `body_len` raw bytes
-//! after the head, and `body_len` must equal the requested `size`. The body
-//! is therefore length-prefixed twice (by the request and by the head), so a
-//! stream that ends early is always detected as [`ProtocolError::ShortBody`].
+//! The body is not bincode-framed: it is exactly `body_len` raw bytes after
+//! the head. For a `LodRequest`, `body_len` must equal the requested `size`;
+//! for a `LodRefsRequest` it is `size` plus a trailer of at most
+//! [`MAX_REFS_TRAILER_LEN`] bytes (the child tables, docs/PROTOCOL.md §4.8).
+//! The body is therefore length-prefixed twice (by the request and by the
+//! head), so a stream that ends early is always detected as
+//! [`ProtocolError::ShortBody`].
 
 use crate::error::ProtocolError;
 use crate::frame::{FrameDecoder, MAX_FRAME_LEN};
-use crate::message::{ErrorMsg, LodRequest, Message, ResponseHead, Status};
+use crate::message::{
+    ErrorMsg, LodRequest, Message, RequestKind, ResponseHead, Status, MAX_REFS_TRAILER_LEN,
+};
 
 /// Decodes the whole client side of a request stream (read to its end, at
-/// most [`crate::LOD_REQUEST_FRAME_LEN`] bytes): exactly one [`LodRequest`] frame.
+/// most [`crate::LOD_REQUEST_FRAME_LEN`] bytes): exactly one [`LodRequest`]
+/// frame. A `LodRefsRequest` is refused here as an unexpected message; a
+/// server that serves both uses [`decode_any_request_stream`].
 pub fn decode_request_stream(bytes: &[u8]) -> Result<LodRequest, ProtocolError> {
-    let mut dec = FrameDecoder::with_max_frame_len(MAX_FRAME_LEN);
-    dec.push(bytes);
-    match dec.next_frame()? {
-        Some(Message::LodRequest(req)) => {
-            if dec.buffered() != 0 {
-                return Err(ProtocolError::TrailingData {
-                    extra: dec.buffered() as u64,
-                    after: "request frame",
-                });
-            }
-            Ok(req)
-        }
-        Some(other) => Err(ProtocolError::UnexpectedMessage {
-            got: other.msg_type(),
+    match decode_stream(bytes, "on a request stream (expected lod_request)")? {
+        (req, RequestKind::Record) => Ok(req),
+        (_, RequestKind::RecordAndRefs) => Err(ProtocolError::UnexpectedMessage {
+            got: RequestKind::RecordAndRefs.msg_type(),
             context: "on a request stream (expected lod_request)",
         }),
-        None => {
-            dec.finish()?;
-            Err(ProtocolError::UnexpectedEnd {
-                during: "before the request frame",
+    }
+}
+
+/// Decodes the whole client side of a request stream (read to its end, at
+/// most [`crate::LOD_REQUEST_FRAME_LEN`] bytes): exactly one `LodRequest` or
+/// `LodRefsRequest` frame, with the kind of request it is.
+pub fn decode_any_request_stream(bytes: &[u8]) -> Result<(LodRequest, RequestKind), ProtocolError> {
+    decode_stream(
+        bytes,
+        "on a request stream (expected lod_request or lod_refs_request)",
+    )
+}
+
+fn decode_stream(
+    bytes: &[u8],
+    context: &'static str,
+) -> Result<(LodRequest, RequestKind), ProtocolError> {
+    let mut dec = FrameDecoder::with_max_frame_len(MAX_FRAME_LEN);
+    dec.push(bytes);
+    let found = match dec.next_frame()? {
+        Some(Message::LodRequest(req)) => (req, RequestKind::Record),
+        Some(Message::LodRefsRequest(req)) => (req, RequestKind::RecordAndRefs),
+        Some(other) => {
+            return Err(ProtocolError::UnexpectedMessage {
+                got: other.msg_type(),
+                context,
             })
         }
+        None => {
+            dec.finish()?;
+            return Err(ProtocolError::UnexpectedEnd {
+                during: "before the request frame",
+            });
+        }
+    };
+    if dec.buffered() != 0 {
+        return Err(ProtocolError::TrailingData {
+            extra: dec.buffered() as u64,
+            after: "request frame",
+        });
     }
+    Ok(found)
 }
 
 /// A fully received response.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Response {
-    /// The record bytes (exactly the requested size).
+    /// The record bytes (exactly the requested size; for a `LodRefsRequest`
+    /// followed by the trailer of child tables).
     Record {
         /// The request id.
         id: u64,
@@ -69,19 +103,34 @@ enum State {
 /// at end of stream.
 ///
 /// It checks that the head's id matches the request, that a successful
-/// head's `body_len` equals the requested `size`, that no byte follows the
+/// head's `body_len` equals the requested `size` (is within `size ..= size +`
+/// [`MAX_REFS_TRAILER_LEN`] for a `LodRefsRequest`), that no byte follows the
 /// body, and (in `finish`) that the body is complete.
 #[derive(Debug, Clone)]
 pub struct ResponseDecoder {
     request: LodRequest,
+    kind: RequestKind,
     state: State,
 }
 
 impl ResponseDecoder {
-    /// A decoder for the response to `request`.
+    /// A decoder for the response to `request` sent as a `LodRequest`.
     pub fn new(request: LodRequest) -> Self {
+        ResponseDecoder::for_kind(request, RequestKind::Record)
+    }
+
+    /// A decoder for the response to `request` sent as a `LodRefsRequest`:
+    /// a successful body is the record (`size` bytes) then a trailer of at
+    /// most [`MAX_REFS_TRAILER_LEN`] bytes.
+    pub fn with_refs(request: LodRequest) -> Self {
+        ResponseDecoder::for_kind(request, RequestKind::RecordAndRefs)
+    }
+
+    /// A decoder for the response to `request` sent as a request of `kind`.
+    pub fn for_kind(request: LodRequest, kind: RequestKind) -> Self {
         ResponseDecoder {
             request,
+            kind,
             state: State::Head(FrameDecoder::with_max_frame_len(MAX_FRAME_LEN)),
         }
     }
@@ -89,6 +138,11 @@ impl ResponseDecoder {
     /// The request this decoder expects a response to.
     pub fn request(&self) -> &LodRequest {
         &self.request
+    }
+
+    /// The kind of request this decoder expects a response to.
+    pub fn kind(&self) -> RequestKind {
+        self.kind
     }
 
     /// The head, once received.
@@ -138,7 +192,7 @@ impl ResponseDecoder {
                     })
                 }
             };
-            check_head(&self.request, &head)?;
+            check_head_kind(&self.request, self.kind, &head)?;
             let rest = dec.take_buffered();
             let mut body = Vec::with_capacity(head.body_len as usize);
             append_body(&head, &mut body, &rest)?;
@@ -185,21 +239,60 @@ pub fn decode_response(request: &LodRequest, stream: &[u8]) -> Result<Response, 
     dec.finish()
 }
 
-/// Checks a response head against its request.
+/// Decodes a whole response stream (read to its end) to `request` sent as a
+/// `LodRefsRequest` ([`ResponseDecoder::with_refs`]).
+pub fn decode_response_with_refs(
+    request: &LodRequest,
+    stream: &[u8],
+) -> Result<Response, ProtocolError> {
+    let mut dec = ResponseDecoder::with_refs(*request);
+    dec.push(stream)?;
+    dec.finish()
+}
+
+/// Checks a response head against its request (sent as a `LodRequest`).
 pub fn check_head(request: &LodRequest, head: &ResponseHead) -> Result<(), ProtocolError> {
+    check_head_kind(request, RequestKind::Record, head)
+}
+
+/// Checks a response head against its request sent as a request of `kind`:
+/// the id, and on `Ok` a `body_len` of `size` (plus at most
+/// [`RequestKind::max_trailer_len`]).
+pub fn check_head_kind(
+    request: &LodRequest,
+    kind: RequestKind,
+    head: &ResponseHead,
+) -> Result<(), ProtocolError> {
     if head.id != request.id {
         return Err(ProtocolError::ResponseIdMismatch {
             expected: request.id,
             got: head.id,
         });
     }
-    if head.status == Status::Ok && head.body_len != request.size {
-        return Err(ProtocolError::BodyLengthMismatch {
-            expected: request.size,
-            got: head.body_len,
-        });
+    if head.status != Status::Ok {
+        return Ok(());
     }
-    Ok(())
+    match kind {
+        RequestKind::Record if head.body_len != request.size => {
+            Err(ProtocolError::BodyLengthMismatch {
+                expected: request.size,
+                got: head.body_len,
+            })
+        }
+        RequestKind::RecordAndRefs => {
+            let max = u64::from(request.size) + u64::from(MAX_REFS_TRAILER_LEN);
+            if head.body_len < request.size || u64::from(head.body_len) > max {
+                Err(ProtocolError::BodyLengthOutOfRange {
+                    min: request.size,
+                    max,
+                    got: head.body_len,
+                })
+            } else {
+                Ok(())
+            }
+        }
+        RequestKind::Record => Ok(()),
+    }
 }
 
 fn append_body(head: &ResponseHead, body: &mut Vec<u8>, bytes: &[u8]) -> Result<(), ProtocolError> {

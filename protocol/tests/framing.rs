@@ -260,7 +260,7 @@ fn raw_frame(type_byte: u8, body: &[u8]) -> Vec<u8> {
 
 #[test]
 fn unknown_types_are_rejected() {
-    for t in [0x00u8, 0x06, 0x0f, 0x12, 0x7f, 0xff] {
+    for t in [0x00u8, 0x06, 0x0f, 0x13, 0x7f, 0xff] {
         let mut dec = FrameDecoder::new();
         dec.push(&raw_frame(t, &[1, 2, 3]));
         let err = dec.next_frame().unwrap_err();
@@ -402,6 +402,74 @@ fn request_stream() {
     ));
 }
 
+#[test]
+fn request_stream_of_either_kind() {
+    let req = LodRequest {
+        id: 9,
+        offset: 100,
+        size: 20,
+    };
+    let plain = req.encode_frame().unwrap();
+    let refs = Message::LodRefsRequest(req).encode_frame().unwrap();
+    assert_eq!(refs.len(), LOD_REQUEST_FRAME_LEN);
+    assert_eq!(plain[..4], refs[..4]);
+    assert_eq!(plain[5..], refs[5..]);
+    assert_eq!(
+        decode_any_request_stream(&plain),
+        Ok((req, RequestKind::Record))
+    );
+    assert_eq!(
+        decode_any_request_stream(&refs),
+        Ok((req, RequestKind::RecordAndRefs))
+    );
+    // The plain decoder still takes only LodRequest.
+    assert_eq!(
+        decode_request_stream(&refs),
+        Err(ProtocolError::UnexpectedMessage {
+            got: MessageType::LodRefsRequest,
+            context: "on a request stream (expected lod_request)",
+        })
+    );
+    // The same framing rules for both kinds.
+    let mut extra = refs.clone();
+    extra.push(0);
+    assert_eq!(
+        decode_any_request_stream(&extra),
+        Err(ProtocolError::TrailingData {
+            extra: 1,
+            after: "request frame"
+        })
+    );
+    for cut in 0..refs.len() {
+        assert!(
+            decode_any_request_stream(&refs[..cut]).is_err(),
+            "cut {cut}"
+        );
+    }
+    let mut short = refs.clone();
+    short[0] = 20;
+    short.truncate(4 + 20);
+    assert!(matches!(
+        decode_any_request_stream(&short),
+        Err(ProtocolError::Malformed {
+            msg_type: MessageType::LodRefsRequest,
+            ..
+        })
+    ));
+    let hello = Hello::new("a", "b", "c").encode_frame().unwrap();
+    assert!(matches!(
+        decode_any_request_stream(&hello),
+        Err(ProtocolError::UnexpectedMessage {
+            got: MessageType::Hello,
+            ..
+        })
+    ));
+    // A request frame on the control stream is a protocol error there.
+    let mut dec = FrameDecoder::new();
+    dec.push(&refs);
+    assert_eq!(dec.next_frame(), Ok(Some(Message::LodRefsRequest(req))));
+}
+
 fn response_stream(head: &ResponseHead, body: &[u8]) -> Vec<u8> {
     let mut out = head.encode_frame().unwrap();
     out.extend_from_slice(body);
@@ -530,4 +598,115 @@ fn error_response() {
         decode_response(&req, &extra),
         Err(ProtocolError::TrailingData { .. })
     ));
+}
+
+#[test]
+fn refs_response_body_lengths() {
+    let req = LodRequest {
+        id: 5,
+        offset: 0,
+        size: 300,
+    };
+    let max = 300 + MAX_REFS_TRAILER_LEN;
+    for len in [300, 301, 300 + 4, 300 + 4 + 2 * 96, max] {
+        let body: Vec<u8> = (0..len).map(|i| (i * 3) as u8).collect();
+        let stream = response_stream(&ResponseHead::ok(5, len), &body);
+        assert_eq!(
+            decode_response_with_refs(&req, &stream),
+            Ok(Response::Record {
+                id: 5,
+                body: body.clone()
+            }),
+            "body_len {len}"
+        );
+        // Split anywhere.
+        for split in [0, 10, RESPONSE_HEAD_OK_FRAME_LEN, stream.len() / 2] {
+            let mut dec = ResponseDecoder::with_refs(req);
+            assert_eq!(dec.kind(), RequestKind::RecordAndRefs);
+            dec.push(&stream[..split]).unwrap();
+            dec.push(&stream[split..]).unwrap();
+            assert!(dec.is_complete());
+            assert_eq!(
+                dec.finish().unwrap(),
+                Response::Record {
+                    id: 5,
+                    body: body.clone()
+                }
+            );
+        }
+        // The plain decoder wants exactly `size`.
+        if len != 300 {
+            assert_eq!(
+                decode_response(&req, &stream),
+                Err(ProtocolError::BodyLengthMismatch {
+                    expected: 300,
+                    got: len
+                })
+            );
+        }
+    }
+    for len in [0, 299, max + 1, u32::MAX] {
+        let head = ResponseHead::ok(5, len);
+        assert_eq!(
+            decode_response_with_refs(&req, &head.encode_frame().unwrap()),
+            Err(ProtocolError::BodyLengthOutOfRange {
+                min: 300,
+                max: u64::from(max),
+                got: len
+            }),
+            "body_len {len}"
+        );
+        assert_eq!(
+            check_head_kind(&req, RequestKind::RecordAndRefs, &head)
+                .unwrap_err()
+                .code(),
+            ErrorCode::Malformed
+        );
+    }
+    // No overflow next to u32::MAX.
+    let big = LodRequest {
+        id: 1,
+        offset: 0,
+        size: u32::MAX - 10,
+    };
+    assert_eq!(
+        check_head_kind(
+            &big,
+            RequestKind::RecordAndRefs,
+            &ResponseHead::ok(1, u32::MAX)
+        ),
+        Ok(())
+    );
+    // The other checks are those of the plain decoder: id, short body,
+    // trailing bytes, error heads.
+    let stream = response_stream(&ResponseHead::ok(6, 300), &[0; 300]);
+    assert_eq!(
+        decode_response_with_refs(&req, &stream),
+        Err(ProtocolError::ResponseIdMismatch {
+            expected: 5,
+            got: 6
+        })
+    );
+    let stream = response_stream(&ResponseHead::ok(5, 310), &[0; 305]);
+    assert_eq!(
+        decode_response_with_refs(&req, &stream),
+        Err(ProtocolError::ShortBody {
+            expected: 310,
+            received: 305
+        })
+    );
+    let stream = response_stream(&ResponseHead::ok(5, 310), &[0; 311]);
+    assert_eq!(
+        decode_response_with_refs(&req, &stream),
+        Err(ProtocolError::TrailingData {
+            extra: 1,
+            after: "response body"
+        })
+    );
+    let e = ErrorMsg::new(ErrorCode::OutOfRange, "no");
+    let stream = response_stream(&ResponseHead::error(5, e.clone()), b"");
+    assert_eq!(
+        decode_response_with_refs(&req, &stream),
+        Ok(Response::Error { id: 5, error: e })
+    );
 }

@@ -59,6 +59,9 @@ fn message() -> impl Strategy<Value = Message> {
         any::<u64>().prop_map(|id| Message::Cancel(Cancel { id })),
         (any::<u64>(), any::<u64>(), any::<u32>())
             .prop_map(|(id, offset, size)| Message::LodRequest(LodRequest { id, offset, size })),
+        (any::<u64>(), any::<u64>(), any::<u32>()).prop_map(|(id, offset, size)| {
+            Message::LodRefsRequest(LodRequest { id, offset, size })
+        }),
         (any::<u64>(), any::<u32>())
             .prop_map(|(id, len)| Message::ResponseHead(ResponseHead::ok(id, len))),
         (any::<u64>(), error_msg())
@@ -134,8 +137,10 @@ proptest! {
         }
         let _ = decode_frame(&bytes);
         let _ = decode_request_stream(&bytes);
+        let _ = decode_any_request_stream(&bytes);
         let req = LodRequest { id: 0, offset: 0, size: 16 };
         let _ = decode_response(&req, &bytes);
+        let _ = decode_response_with_refs(&req, &bytes);
     }
 
     /// Arbitrary bytes behind a plausible frame header (valid type, length

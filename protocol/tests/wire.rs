@@ -88,6 +88,42 @@ fn lod_request_bytes() {
 }
 
 #[test]
+fn lod_refs_request_bytes() {
+    let req = LodRequest {
+        id: 7,
+        offset: 0x0102_0304_0506_0708,
+        size: 4096,
+    };
+    // The LodRequest body under type byte 0x12.
+    let expected = "15 00 00 00  12  07 00 00 00 00 00 00 00  08 07 06 05 04 03 02 01  00 10 00 00";
+    assert_wire(Message::LodRefsRequest(req), expected);
+    let bytes = req.encode_frame_as(RequestKind::RecordAndRefs).unwrap();
+    assert_eq!(bytes, hex(expected));
+    assert_eq!(bytes.len(), LOD_REQUEST_FRAME_LEN);
+    assert_eq!(
+        RequestKind::RecordAndRefs
+            .message(req)
+            .encode_frame()
+            .unwrap(),
+        bytes
+    );
+    // The plain kind is the LodRequest frame, byte for byte.
+    assert_eq!(
+        req.encode_frame_as(RequestKind::Record).unwrap(),
+        req.encode_frame().unwrap()
+    );
+    assert_eq!(
+        MessageType::from_u8(0x12),
+        Some(MessageType::LodRefsRequest)
+    );
+    assert_eq!(MessageType::LodRefsRequest.as_str(), "lod_refs_request");
+    assert_eq!(
+        decode_any_request_stream(&bytes),
+        Ok((req, RequestKind::RecordAndRefs))
+    );
+}
+
+#[test]
 fn response_head_bytes() {
     let ok = ResponseHead::ok(7, 4096);
     assert_wire(
@@ -130,6 +166,9 @@ fn constants() {
     assert_eq!(MAX_FRAME_LEN, 65536);
     assert_eq!(LOD_REQUEST_FRAME_LEN, 25);
     assert_eq!(RESPONSE_HEAD_OK_FRAME_LEN, 21);
+    assert_eq!(MAX_REFS_TRAILER_LEN, 388);
+    assert_eq!(RequestKind::RecordAndRefs.max_trailer_len(), 388);
+    assert_eq!(RequestKind::Record.max_trailer_len(), 0);
     assert_eq!(quic::STREAM_CANCELLED, 17);
 }
 
@@ -152,6 +191,57 @@ fn protocol_doc_shows_the_hello_bytes() {
         doc.lines().any(|l| l.trim() == hex),
         "docs/PROTOCOL.md must contain the Hello example as the line {hex}"
     );
+}
+
+#[test]
+fn protocol_doc_shows_the_lod_refs_request_bytes() {
+    let req = LodRequest {
+        id: 7,
+        offset: 0x0102_0304_0506_0708,
+        size: 4096,
+    };
+    let bytes = Message::LodRefsRequest(req).encode_frame().unwrap();
+    // As §4.8 spells it: `15 00 00 00  12  07 00 ...`, single spaces
+    // between bytes, double spaces between fields.
+    let doc = include_str!("../../docs/PROTOCOL.md");
+    let section = doc
+        .split("### 4.8 `LodRefsRequest` (0x12)")
+        .nth(1)
+        .and_then(|s| s.split("\n## ").next())
+        .expect("§4.8 in docs/PROTOCOL.md");
+    let normalised: Vec<String> = section
+        .lines()
+        .map(|l| l.split_whitespace().collect::<Vec<_>>().join(" "))
+        .collect();
+    let want: Vec<String> = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    assert!(
+        normalised.iter().any(|l| *l == want.join(" ")),
+        "docs/PROTOCOL.md §4.8 must show the LodRefsRequest example {want:?}"
+    );
+}
+
+#[test]
+fn the_message_type_table_of_the_document_is_the_code() {
+    // docs/PROTOCOL.md §3: one row per type, `| 0xNN | `Name` | ...`.
+    let doc = include_str!("../../docs/PROTOCOL.md");
+    let section = doc
+        .split("## 3. Framing")
+        .nth(1)
+        .and_then(|s| s.split("\n## ").next())
+        .expect("§3 in docs/PROTOCOL.md");
+    let mut rows = Vec::new();
+    for line in section.lines() {
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        if cells.len() > 3 {
+            if let Some(hex) = cells[1].strip_prefix("0x") {
+                if let Ok(n) = u8::from_str_radix(hex, 16) {
+                    rows.push(n);
+                }
+            }
+        }
+    }
+    let code: Vec<u8> = MessageType::ALL.iter().map(|t| t.as_u8()).collect();
+    assert_eq!(rows, code);
 }
 
 #[test]

@@ -12,10 +12,11 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use futures_util::stream::{FuturesUnordered, StreamExt};
 use futures_util::FutureExt;
-use planet_core::format::record_checksum_ok;
+use planet_core::format::{child_tables_for, record_checksum_ok, ChildRef, SUPERBLOCK_LEN};
 use planet_protocol::{
-    decode_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight, Limits,
-    LodRequest, ResponseHead, ServerEvent, ServerSession, Welcome, LOD_REQUEST_FRAME_LEN,
+    decode_any_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight,
+    Limits, LodRequest, RequestKind, ResponseHead, ServerEvent, ServerSession, Welcome,
+    LOD_REQUEST_FRAME_LEN,
 };
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
@@ -650,6 +651,36 @@ fn validate(ctx: &ConnCtx, est: &Established, req: &LodRequest) -> Result<(), Er
     })
 }
 
+/// The trailer of a `LodRefsRequest` response (docs/PROTOCOL.md §4.8): the
+/// child table of each child of `record` (whose checksum was checked), read
+/// with the same storage read as a record. A child whose record cannot be
+/// read, fails its checksum or whose references do not parse is unknown
+/// (`0xff`), as is one the client could not request itself (outside the
+/// record area, over `max_record_size`): a refs request never makes the
+/// server read what it would refuse to serve. A record whose own references
+/// do not parse (which the client refuses too) gets an empty trailer.
+fn child_tables(est: &Established, record: &[u8], max_record_size: u32) -> Vec<u8> {
+    let db = &est.db;
+    let read = |c: &ChildRef| {
+        let in_area = c.offset >= SUPERBLOCK_LEN as u64
+            && c.offset
+                .checked_add(u64::from(c.size))
+                .is_some_and(|end| end <= db.records_end());
+        if !in_area || c.size > max_record_size {
+            return None;
+        }
+        db.read(c.offset, c.size as usize)
+            .map_err(|e| {
+                tracing::debug!(
+                    database = %db.name, offset = c.offset, error = %e,
+                    "cannot read a child record for its child table"
+                );
+            })
+            .ok()
+    };
+    child_tables_for(record, Some(db.len()), read).unwrap_or_default()
+}
+
 async fn serve_request(
     ctx: Arc<ConnCtx>,
     mut send: SendStream,
@@ -691,7 +722,9 @@ async fn serve_request(
             return;
         }
     };
-    let req = match decode_request_stream(&bytes) {
+    // A `LodRequest` or a `LodRefsRequest`: the same body, the same checks;
+    // the latter's response adds the children's child tables.
+    let (req, kind) = match decode_any_request_stream(&bytes) {
         Ok(r) => r,
         Err(e) => {
             let (t, d) = ctx.established.get().map_or((NO_TENANT, NO_TENANT), |e| {
@@ -756,10 +789,13 @@ async fn serve_request(
     let size = u64::from(req.size);
 
     // Per-tenant requests, then bandwidth: pace modest excess, refuse long
-    // waits.
+    // waits. A refs request reserves its largest response, the record plus
+    // `MAX_REFS_TRAILER_LEN` (its trailer is not known before the children
+    // are read, after pacing); the unused part is not refunded.
+    let reserved = size + u64::from(kind.max_trailer_len());
     let buckets = [
         (&est.tenant.requests, 1, "request"),
-        (&est.tenant.bucket, size, "bandwidth"),
+        (&est.tenant.bucket, reserved, "bandwidth"),
     ];
     for (bucket, amount, what) in buckets {
         let Some(bucket) = bucket else { continue };
@@ -832,22 +868,34 @@ async fn serve_request(
         reply_error(&mut send, req.id, e).await;
         return;
     }
-    let head = match ResponseHead::ok(req.id, req.size).encode_frame() {
-        Ok(h) => h,
-        Err(_) => {
+    let trailer = match kind {
+        RequestKind::Record => Vec::new(),
+        RequestKind::RecordAndRefs => child_tables(est, &body, ctx.shared.cfg.max_record_size),
+    };
+    // `trailer.len() <= MAX_REFS_TRAILER_LEN` and `size <= max_record_size`.
+    let body_len = u32::try_from(trailer.len())
+        .ok()
+        .and_then(|t| req.size.checked_add(t));
+    let head = match body_len.map(|len| ResponseHead::ok(req.id, len).encode_frame()) {
+        Some(Ok(h)) => h,
+        _ => {
             let e = fail(ErrorMsg::new(ErrorCode::Internal, "cannot encode head"));
             reply_error(&mut send, req.id, e).await;
             return;
         }
     };
-    let mut chunks = [Bytes::from(head), body];
+    let sent = size + trailer.len() as u64;
+    let mut chunks = [Bytes::from(head), body, Bytes::from(trailer)];
+    // No empty trailer chunk: a plain request writes exactly what it did
+    // before refs requests existed.
+    let n_chunks = if chunks[2].is_empty() { 2 } else { 3 };
     let write_deadline = tokio::time::sleep(ctx.shared.cfg.write_timeout);
     let written = tokio::select! {
         // The write usually completes in its first poll: try it before
         // registering with the abort signal and the timer (a `Sleep`
         // registers with the timer only when polled).
         biased;
-        r = send.write_all_chunks(&mut chunks) => Some(Some(r)),
+        r = send.write_all_chunks(&mut chunks[..n_chunks]) => Some(Some(r)),
         _ = abort.wait_for(|a| *a) => None,
         _ = write_deadline => Some(None),
     };
@@ -889,7 +937,8 @@ async fn serve_request(
     drop(guard);
     if outcome == RequestOutcome::Ok {
         est.ok.requests.inc();
-        est.ok.bytes_sent.inc_by(size);
+        // The record and the trailer of a refs request.
+        est.ok.bytes_sent.inc_by(sent);
         est.ok.record_size.observe(size as f64);
         est.ok.duration.observe(started.elapsed().as_secs_f64());
     } else {

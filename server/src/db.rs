@@ -438,4 +438,14 @@ mod tests {
             planet_protocol::MAX_HEADER_LEN
         );
     }
+
+    /// A `LodRefsRequest` response carries `encode_child_tables` (core) in a
+    /// trailer whose length the client's decoder bounds (protocol).
+    #[test]
+    fn format_and_protocol_agree_on_the_child_tables_limit() {
+        assert_eq!(
+            planet_core::format::MAX_CHILD_TABLES_LEN,
+            planet_protocol::MAX_REFS_TRAILER_LEN as usize
+        );
+    }
 }

@@ -19,6 +19,9 @@
 //!   response that is not `206` with exactly `size` bytes fails that
 //!   request (the client then checks the record's magic, length and CRC
 //!   before drawing anything, as for QUIC);
+//! - a byte range carries no child tables: [`SessionHandle::request_refs`]
+//!   is a plain record request here (the record arrives without a trailer,
+//!   docs/PROTOCOL.md §1.1);
 //! - cancellation drops the request, which resets its HTTP/2 stream;
 //! - a lost connection fails what is in flight with a connection error and
 //!   reconnects with the same capped, jittered backoff.
@@ -472,7 +475,9 @@ async fn run_http(
                 let user_closed = serve_requests(
                     &mut cmd_rx,
                     &ev,
-                    move |_id, offset, size| {
+                    // `refs` is ignored: a byte range is the record alone,
+                    // so `request_refs` is `request` on this transport.
+                    move |_id, offset, size, _refs| {
                         let c = c.clone();
                         async move { c.fetch(offset, size).await }
                     },

@@ -1,12 +1,15 @@
 //! QUIC transport of the planet protocol (client side).
 //!
 //! - [`Connection`]: one QUIC connection: control-stream handshake, then
-//!   [`Connection::fetch`] per record (one bidirectional stream each).
+//!   [`Connection::fetch`] per record (one bidirectional stream each), or
+//!   [`Connection::fetch_refs`] for a record and its children's child
+//!   tables (`LodRefsRequest`, docs/PROTOCOL.md §4.8).
 //!   Dropping a fetch future, or [`FetchHandle::cancel`], stops the stream
 //!   with `STREAM_CANCELLED` so the server stops sending.
 //! - [`Session`] / [`SessionHandle`]: a reconnecting wrapper running on a
 //!   tokio runtime, driven from synchronous code (e.g. a per-frame loop)
-//!   through non-blocking channels: `request`, `cancel`, `poll_events`.
+//!   through non-blocking channels: `request`, `request_refs`, `cancel`,
+//!   `poll_events`.
 //!
 //! TLS configurations come from [`crate::tls`].
 
@@ -18,7 +21,7 @@ use std::time::Duration;
 use planet_client::TransportError;
 use planet_protocol::{
     quic, ClientHandshake, ErrorCode, ErrorMsg, FrameDecoder, HandshakeOutcome, Hello, LodRequest,
-    Message, ProtocolError, Response, ResponseDecoder, Welcome,
+    Message, ProtocolError, RequestKind, Response, ResponseDecoder, Welcome,
 };
 use quinn::VarInt;
 use tokio::sync::{mpsc, watch};
@@ -440,7 +443,28 @@ impl Connection {
     /// Fetches the record at `offset` of `size` bytes. Dropping the future
     /// cancels the request (`recv.stop(STREAM_CANCELLED)`).
     pub async fn fetch(&self, id: u64, offset: u64, size: u32) -> Result<Vec<u8>, NetError> {
-        let fut = self.fetch_inner(LodRequest { id, offset, size });
+        self.fetch_kind(id, offset, size, RequestKind::Record).await
+    }
+
+    /// Fetches the record at `offset` of `size` bytes with a
+    /// `LodRefsRequest` (docs/PROTOCOL.md §4.8): the result is the record's
+    /// `size` bytes followed by the trailer of its children's child tables
+    /// (at most [`planet_protocol::MAX_REFS_TRAILER_LEN`] bytes, empty for a
+    /// leaf; `planet_core::format::parse_child_tables` reads it). Dropping
+    /// the future cancels the request, as for [`Connection::fetch`].
+    pub async fn fetch_refs(&self, id: u64, offset: u64, size: u32) -> Result<Vec<u8>, NetError> {
+        self.fetch_kind(id, offset, size, RequestKind::RecordAndRefs)
+            .await
+    }
+
+    async fn fetch_kind(
+        &self,
+        id: u64,
+        offset: u64,
+        size: u32,
+        kind: RequestKind,
+    ) -> Result<Vec<u8>, NetError> {
+        let fut = self.fetch_inner(LodRequest { id, offset, size }, kind);
         match self.inner.fetch_timeout {
             Some(t) => tokio::time::timeout(t, fut)
                 .await
@@ -457,7 +481,7 @@ impl Connection {
         FetchHandle { id, task }
     }
 
-    async fn fetch_inner(&self, req: LodRequest) -> Result<Vec<u8>, NetError> {
+    async fn fetch_inner(&self, req: LodRequest, kind: RequestKind) -> Result<Vec<u8>, NetError> {
         let (send, recv) = self.inner.conn.open_bi().await?;
         let mut guard = StreamGuard {
             send,
@@ -465,11 +489,11 @@ impl Connection {
             finished: false,
             done: false,
         };
-        let frame = req.encode_frame()?;
+        let frame = req.encode_frame_as(kind)?;
         guard.send.write_all(&frame).await?;
         let _ = guard.send.finish();
         guard.finished = true;
-        let mut dec = ResponseDecoder::new(req);
+        let mut dec = ResponseDecoder::for_kind(req, kind);
         loop {
             match guard.recv.read_chunk(1 << 20, true).await {
                 Ok(Some(chunk)) => dec.push(&chunk.bytes)?,
@@ -615,7 +639,8 @@ pub enum NetEvent {
     Record {
         /// The request id.
         id: u64,
-        /// The record bytes.
+        /// The record bytes; after [`SessionHandle::request_refs`] on a QUIC
+        /// session, followed by the trailer of child tables.
         bytes: Vec<u8>,
     },
     /// A request failed; re-request it if still needed (after `Connected`
@@ -675,8 +700,16 @@ impl SessionConfig {
 }
 
 pub(crate) enum Cmd {
-    Request { id: u64, offset: u64, size: u32 },
-    Cancel { id: u64 },
+    /// `refs`: a `LodRefsRequest` (QUIC; the HTTP transport ignores it).
+    Request {
+        id: u64,
+        offset: u64,
+        size: u32,
+        refs: bool,
+    },
+    Cancel {
+        id: u64,
+    },
     Close,
 }
 
@@ -748,7 +781,31 @@ impl SessionHandle {
     /// Requests a record (non-blocking). The result arrives as
     /// [`NetEvent::Record`] or [`NetEvent::Failed`].
     pub fn request(&self, id: u64, offset: u64, size: u32) {
-        let _ = self.cmd.send(Cmd::Request { id, offset, size });
+        let _ = self.cmd.send(Cmd::Request {
+            id,
+            offset,
+            size,
+            refs: false,
+        });
+    }
+
+    /// Requests a record and the child tables of its children
+    /// (non-blocking; [`Connection::fetch_refs`]). The result arrives as
+    /// [`NetEvent::Record`], whose bytes are the record's `size` bytes
+    /// followed by the trailer (docs/PROTOCOL.md §4.8), or
+    /// [`NetEvent::Failed`].
+    ///
+    /// On an HTTP session ([`Session::spawn_http`]) a byte range cannot
+    /// carry the trailer: this is exactly [`SessionHandle::request`], and
+    /// the bytes are the record alone. Tell the two apart by the length:
+    /// `bytes.len() == size` means no trailer.
+    pub fn request_refs(&self, id: u64, offset: u64, size: u32) {
+        let _ = self.cmd.send(Cmd::Request {
+            id,
+            offset,
+            size,
+            refs: true,
+        });
     }
 
     /// Cancels a request (non-blocking); [`NetEvent::Cancelled`] follows if
@@ -865,9 +922,15 @@ async fn run_session(
                 let user_closed = serve_requests(
                     &mut cmd_rx,
                     &ev,
-                    move |id, offset, size| {
+                    move |id, offset, size, refs| {
                         let c = c.clone();
-                        async move { c.fetch(id, offset, size).await }
+                        async move {
+                            if refs {
+                                c.fetch_refs(id, offset, size).await
+                            } else {
+                                c.fetch(id, offset, size).await
+                            }
+                        }
                     },
                     conn.closed(),
                 )
@@ -919,10 +982,10 @@ pub(crate) async fn while_disconnected<F: std::future::Future>(
 }
 
 /// Serves requests on one connection, one task per request made by
-/// `fetch(id, offset, size)`, until the user closes the session (`true`) or
-/// the connection is lost (`false`): `closed` completes, or a request fails
-/// with a connection error (an HTTP `412`, a reset connection). Shared by
-/// the QUIC and HTTP sessions.
+/// `fetch(id, offset, size, refs)` (`refs`: [`SessionHandle::request_refs`]),
+/// until the user closes the session (`true`) or the connection is lost
+/// (`false`): `closed` completes, or a request fails with a connection error
+/// (an HTTP `412`, a reset connection). Shared by the QUIC and HTTP sessions.
 pub(crate) async fn serve_requests<Fetch, Fut>(
     cmd_rx: &mut mpsc::UnboundedReceiver<Cmd>,
     ev: &crossbeam_channel::Sender<NetEvent>,
@@ -930,7 +993,7 @@ pub(crate) async fn serve_requests<Fetch, Fut>(
     closed: impl std::future::Future<Output = NetError>,
 ) -> bool
 where
-    Fetch: Fn(u64, u64, u32) -> Fut,
+    Fetch: Fn(u64, u64, u32, bool) -> Fut,
     Fut: std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static,
 {
     let mut tasks: JoinSet<(u64, Result<Vec<u8>, NetError>)> = JoinSet::new();
@@ -949,7 +1012,7 @@ where
         tokio::select! {
             c = cmd_rx.recv() => match c {
                 None | Some(Cmd::Close) => break true,
-                Some(Cmd::Request { id, offset, size }) => {
+                Some(Cmd::Request { id, offset, size, refs }) => {
                     if pending.contains_key(&id) {
                         let _ = ev.send(NetEvent::Failed {
                             id,
@@ -960,7 +1023,7 @@ where
                         });
                         continue;
                     }
-                    let f = fetch(id, offset, size);
+                    let f = fetch(id, offset, size, refs);
                     let h = tasks.spawn(async move { (id, f.await) });
                     pending.insert(id, h);
                 }

@@ -175,7 +175,12 @@ impl StreamingClient {
         }
         let out = self.client.frame(camera, dt);
         for s in &out.send {
-            self.session.request(s.id, s.record.offset, s.record.size);
+            if s.refs {
+                self.session
+                    .request_refs(s.id, s.record.offset, s.record.size);
+            } else {
+                self.session.request(s.id, s.record.offset, s.record.size);
+            }
         }
         self.counters.requests += out.send.len() as u64;
         for &id in &out.cancel {

@@ -11,7 +11,9 @@ use planet_core::codec::{colour::HaarParams, ColourCodec, ElevationCodec};
 use planet_core::format::{Header, Superblock, SUPERBLOCK_LEN};
 use planet_core::{codec, format};
 use planet_preprocess::crs::{Crs, GeoKeys};
-use planet_protocol::{decode_request_stream, FrameDecoder, LodRequest, ResponseDecoder};
+use planet_protocol::{
+    decode_any_request_stream, decode_request_stream, FrameDecoder, LodRequest, ResponseDecoder,
+};
 
 /// The CRC-32 (IEEE) of the database format, used to repair inputs so the
 /// checks behind the checksum are reached.
@@ -21,7 +23,8 @@ pub fn repair_crc(bytes: &[u8]) -> u32 {
 
 /// `protocol_frames`: protocol frames from an untrusted peer: the frame
 /// decoder fed in arbitrary fragments (split at a data-dependent point), the
-/// request-stream decoder and the response decoder.
+/// request-stream decoders (`LodRequest` only, and either kind) and the
+/// response decoders (plain, and with the trailer of a `LodRefsRequest`).
 pub fn protocol_frames(data: &[u8]) {
     let cut = data.first().map_or(0, |b| *b as usize % (data.len() + 1));
     let mut dec = FrameDecoder::new();
@@ -31,19 +34,30 @@ pub fn protocol_frames(data: &[u8]) {
     while let Ok(Some(_)) = dec.next_frame() {}
     let _ = dec.finish();
     let _ = decode_request_stream(data);
+    let _ = decode_any_request_stream(data);
     let req = LodRequest {
         id: 7,
         offset: 64,
         size: 100,
     };
-    let mut resp = ResponseDecoder::new(req);
-    let _ = resp.push(data);
-    let _ = resp.finish();
+    for mut resp in [ResponseDecoder::new(req), ResponseDecoder::with_refs(req)] {
+        let _ = resp.push(&data[..cut]);
+        let _ = resp.push(&data[cut..]);
+        let _ = resp.finish();
+    }
 }
 
 /// Parse, check and decode `data` as a record of every payload kind.
 fn db_record_exercise(data: &[u8]) {
     let _ = format::peek_record_len(data);
+    // The child references alone, as a server reads them for a
+    // `LodRefsRequest`, and the data as such a response's trailer.
+    let _ = format::record_child_refs(data, None);
+    let _ = format::record_child_refs(data, Some(1 << 40));
+    for n in 0..=4 {
+        let _ = format::parse_child_tables(data, n, None);
+        let _ = format::parse_child_tables(data, n, Some(1 << 40));
+    }
     if let Ok(rec) = format::parse_record(data, Some(1 << 40)) {
         let w = 64;
         for c in [
@@ -78,7 +92,10 @@ fn db_record_exercise(data: &[u8]) {
 /// `db_record`: a record as a client receives it from the network, or as a
 /// server reads it from a hostile file: parse, check and decode every
 /// payload kind, as is and with its length field and CRC repaired (so the
-/// field checks and codecs behind the checksum are reached).
+/// field checks and codecs behind the checksum are reached); also the child
+/// references alone (`record_child_refs`, what a server reads for a
+/// `LodRefsRequest`) and the bytes as such a response's child tables
+/// (`parse_child_tables` for 0 to 4 children).
 pub fn db_record(data: &[u8]) {
     db_record_exercise(data);
     if data.len() >= format::MIN_RECORD_LEN {

@@ -268,7 +268,7 @@ pub struct FakeServer {
     pub latency_frames: u64,
     /// Record offsets to corrupt once (a byte flipped in the payload).
     pub corrupt_once: HashSet<u64>,
-    pending: Vec<(u64, u64, ChildRef)>,
+    pending: Vec<(u64, u64, ChildRef, bool)>,
     now: u64,
     /// Every request ever sent, in order.
     pub log: Vec<Outgoing>,
@@ -293,7 +293,7 @@ impl FakeServer {
         for s in &out.send {
             self.log.push(*s);
             self.pending
-                .push((self.now + self.latency_frames, s.id, s.record));
+                .push((self.now + self.latency_frames, s.id, s.record, s.refs));
         }
     }
 
@@ -304,12 +304,20 @@ impl FakeServer {
         let (due, rest): (Vec<_>, Vec<_>) = self.pending.drain(..).partition(|p| p.0 <= now);
         self.pending = rest;
         due.into_iter()
-            .filter_map(|(_, id, r)| {
+            .filter_map(|(_, id, r, refs)| {
                 let mut bytes = db.read(&r)?;
+                // A `LodRefsRequest`: the child tables after the record,
+                // as planet-server answers it.
+                let tables = refs
+                    .then(|| {
+                        planet_core::format::child_tables_for(&bytes, None, |c| db.read(c)).ok()
+                    })
+                    .flatten();
                 if self.corrupt_once.remove(&r.offset) {
                     let k = bytes.len() / 2;
                     bytes[k] ^= 0x5a;
                 }
+                bytes.extend(tables.unwrap_or_default());
                 Some((id, bytes))
             })
             .collect()
