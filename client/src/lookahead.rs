@@ -62,16 +62,6 @@ impl Lookahead {
         self.known.contains_key(block)
     }
 
-    /// Entries held.
-    pub fn len(&self) -> usize {
-        self.known.len()
-    }
-
-    /// True when nothing is held.
-    pub fn is_empty(&self) -> bool {
-        self.known.is_empty()
-    }
-
     /// Learns the tables in `trailer` (the body after the record of `block`,
     /// `record` its bytes). Returns false, learning nothing, when the
     /// record's checksum or the trailer does not check.

@@ -725,6 +725,62 @@ fn a_record_that_keeps_failing_is_retried_with_exponential_backoff() {
     );
 }
 
+/// What a descent from orbit to the ground ended with ([`descend`]).
+struct Descent {
+    /// Frames until idle.
+    frames: u32,
+    /// Requests counted by the caller's test.
+    counted: usize,
+    /// Largest drawn screen-space error at the end.
+    max_sse: f64,
+    /// Bytes dropped on arrival.
+    dropped: u64,
+    /// The final elevation tree's blocks, sorted.
+    nodes: Vec<BlockId>,
+}
+
+/// A descent from 2 km over the ground to convergence with `cfg` behind
+/// a fake server of `latency` frames; `count` counts the requests of each
+/// frame (given the client before the answers). Checks that no block is
+/// asked twice and that the tree stays valid.
+fn descend(
+    cfg: ClientConfig,
+    latency: u64,
+    mut count: impl FnMut(&Client, &planet_client::Outgoing) -> bool,
+) -> Descent {
+    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 2_000.0);
+    let cam = Camera::look_at(
+        eye,
+        surface(DVec3::new(1.0, 0.13, 0.21), 0.0),
+        eye.normalize(),
+    );
+    let mut c = Client::new(db().header.clone(), cfg).expect("client");
+    let mut s = FakeServer::new(latency);
+    let (mut counted, mut quiet) = (0, 0);
+    for frame in 0..4000u32 {
+        let out = c.frame(&cam, 1.0 / 60.0);
+        counted += out.send.iter().filter(|o| count(&c, o)).count();
+        let idle = exchange(&mut c, &mut s, &out);
+        quiet = if idle { quiet + 1 } else { 0 };
+        if quiet >= 3 {
+            let blocks: std::collections::HashSet<_> =
+                s.log.iter().map(|o| (o.tree, o.block)).collect();
+            assert_eq!(blocks.len(), s.log.len(), "a block asked twice ({cfg:?})");
+            c.tree().validate().expect("valid");
+            let mut nodes: Vec<_> = c.tree().elevation().nodes().map(|n| n.id).collect();
+            nodes.sort();
+            return Descent {
+                frames: frame,
+                counted,
+                max_sse: out.draw.iter().map(|d| d.screen_error).fold(0.0, f64::max),
+                dropped: c.totals().bytes_dropped,
+                nodes,
+            };
+        }
+    }
+    panic!("no convergence ({cfg:?}, latency {latency})");
+}
+
 /// `ours` asks a splitting block's children in the frame that chooses the
 /// split (`ClientConfig::eager_children`): a descent from orbit to the
 /// ground converges in fewer frames than with the children asked a frame
@@ -733,12 +789,6 @@ fn a_record_that_keeps_failing_is_retried_with_exponential_backoff() {
 /// frame: they wait for it).
 #[test]
 fn children_are_asked_in_the_frame_that_splits() {
-    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 2_000.0);
-    let cam = Camera::look_at(
-        eye,
-        surface(DVec3::new(1.0, 0.13, 0.21), 0.0),
-        eye.normalize(),
-    );
     let run = |eager: bool, latency: u64| {
         let cfg = ClientConfig {
             decode_threads: 0,
@@ -746,47 +796,35 @@ fn children_are_asked_in_the_frame_that_splits() {
             lookahead: false,
             ..ClientConfig::for_policy(Policy::Ours, 1.0)
         };
-        let mut c = Client::new(db().header.clone(), cfg).expect("client");
-        let mut s = FakeServer::new(latency);
-        let (mut early, mut quiet) = (0, 0);
-        for frame in 0..4000u32 {
-            let out = c.frame(&cam, 1.0 / 60.0);
-            early += out
-                .send
-                .iter()
-                .filter(|o| c.tree().elevation().get(&o.block).is_none())
-                .count();
-            let idle = exchange(&mut c, &mut s, &out);
-            quiet = if idle { quiet + 1 } else { 0 };
-            if quiet >= 3 {
-                let max = out.draw.iter().map(|d| d.screen_error).fold(0.0, f64::max);
-                let t = c.totals();
-                let blocks: std::collections::HashSet<_> =
-                    s.log.iter().map(|o| (o.tree, o.block)).collect();
-                assert_eq!(blocks.len(), s.log.len(), "a block asked twice");
-                c.tree().validate().expect("valid");
-                return (frame, early, max, t.bytes_dropped, t.bytes_received);
-            }
-        }
-        panic!("no convergence (eager {eager}, latency {latency})");
+        // Asked while its block does not exist yet.
+        descend(cfg, latency, |c, o| {
+            c.tree().elevation().get(&o.block).is_none()
+        })
     };
     for latency in [0, 1, 4] {
-        let (f_late, e_late, max_late, drop_late, _) = run(false, latency);
-        let (f_eager, e_eager, max_eager, drop_eager, bytes) = run(true, latency);
+        let late = run(false, latency);
+        let eager = run(true, latency);
         eprintln!(
-            "latency {latency}: {f_late} → {f_eager} frames, {e_eager} children asked early, \
-             {bytes} B"
+            "latency {latency}: {} → {} frames, {} children asked early",
+            late.frames, eager.frames, eager.counted
         );
-        assert_eq!(e_late, 0);
-        assert!(e_eager > 0, "no child asked in its parent's split frame");
+        assert_eq!(late.counted, 0);
         assert!(
-            f_eager < f_late,
-            "{f_eager} frames, not fewer than {f_late}"
+            eager.counted > 0,
+            "no child asked in its parent's split frame"
         );
-        assert_eq!((drop_late, drop_eager), (0, 0), "bytes dropped");
         assert!(
-            max_late <= 1.0 && max_eager <= 1.0,
-            "{max_late} {max_eager}"
+            eager.frames < late.frames,
+            "{} frames, not fewer than {}",
+            eager.frames,
+            late.frames
+        );
+        assert_eq!((late.dropped, eager.dropped), (0, 0), "bytes dropped");
+        assert!(
+            late.max_sse <= 1.0 && eager.max_sse <= 1.0,
+            "{} {}",
+            late.max_sse,
+            eager.max_sse
         );
     }
 }
@@ -799,72 +837,46 @@ fn children_are_asked_in_the_frame_that_splits() {
 /// record, and ends at the same tree.
 #[test]
 fn two_levels_per_round_trip_with_the_child_tables() {
-    let eye = surface(DVec3::new(1.0, 0.1, 0.2), 2_000.0);
-    let cam = Camera::look_at(
-        eye,
-        surface(DVec3::new(1.0, 0.13, 0.21), 0.0),
-        eye.normalize(),
-    );
     let run = |lookahead: bool, latency: u64| {
         let cfg = ClientConfig {
             decode_threads: 0,
             lookahead,
             ..ClientConfig::for_policy(Policy::Ours, 1.0)
         };
-        let mut c = Client::new(db().header.clone(), cfg).expect("client");
-        let mut s = FakeServer::new(latency);
-        let (mut ahead, mut tables, mut quiet) = (0, 0, 0);
-        for frame in 0..4000u32 {
-            let out = c.frame(&cam, 1.0 / 60.0);
-            // Asked while even its parent does not exist yet.
-            ahead += out
-                .send
-                .iter()
-                .filter(|o| {
-                    o.block
-                        .parent()
-                        .is_some_and(|p| c.tree().elevation().get(&p).is_none())
-                })
-                .count();
-            tables += out.send.iter().filter(|o| o.refs).count();
-            let idle = exchange(&mut c, &mut s, &out);
-            quiet = if idle { quiet + 1 } else { 0 };
-            if quiet >= 3 {
-                let max = out.draw.iter().map(|d| d.screen_error).fold(0.0, f64::max);
-                let t = c.totals();
-                let blocks: std::collections::HashSet<_> =
-                    s.log.iter().map(|o| (o.tree, o.block)).collect();
-                if blocks.len() != s.log.len() {
-                    for o in &s.log {
-                        eprintln!("{:?} {:?} refs {}", o.tree, o.block, o.refs);
-                    }
-                }
-                assert_eq!(
-                    blocks.len(),
-                    s.log.len(),
-                    "a block asked twice (lookahead {lookahead}, latency {latency})"
-                );
-                c.tree().validate().expect("valid");
-                let mut nodes: Vec<_> = c.tree().elevation().nodes().map(|n| n.id).collect();
-                nodes.sort();
-                return (frame, ahead, tables, max, t.bytes_dropped, nodes);
-            }
-        }
-        panic!("no convergence (lookahead {lookahead}, latency {latency})");
+        let mut tables = 0;
+        // Asked while even its parent does not exist yet.
+        let d = descend(cfg, latency, |c, o| {
+            tables += usize::from(o.refs);
+            o.block
+                .parent()
+                .is_some_and(|p| c.tree().elevation().get(&p).is_none())
+        });
+        (d, tables)
     };
     for latency in [2, 4, 8] {
-        let (f_one, a_one, t_one, max_one, drop_one, n_one) = run(false, latency);
-        let (f_two, a_two, t_two, max_two, drop_two, n_two) = run(true, latency);
+        let (one, t_one) = run(false, latency);
+        let (two, t_two) = run(true, latency);
         eprintln!(
-            "latency {latency}: {f_one} → {f_two} frames, {a_two} blocks asked ahead of \
-             their parent, {t_two} requests with tables"
+            "latency {latency}: {} → {} frames, {} blocks asked ahead of their parent, \
+             {t_two} requests with tables",
+            one.frames, two.frames, two.counted
         );
-        assert_eq!((a_one, t_one), (0, 0));
-        assert!(a_two > 0 && t_two > 0, "nothing asked ahead");
-        assert!(f_two < f_one, "{f_two} frames, not fewer than {f_one}");
-        assert_eq!((drop_one, drop_two), (0, 0), "bytes dropped");
-        assert!(max_one <= 1.0 && max_two <= 1.0, "{max_one} {max_two}");
-        assert_eq!(n_one, n_two, "another tree");
+        assert_eq!((one.counted, t_one), (0, 0));
+        assert!(two.counted > 0 && t_two > 0, "nothing asked ahead");
+        assert!(
+            two.frames < one.frames,
+            "{} frames, not fewer than {}",
+            two.frames,
+            one.frames
+        );
+        assert_eq!((one.dropped, two.dropped), (0, 0), "bytes dropped");
+        assert!(
+            one.max_sse <= 1.0 && two.max_sse <= 1.0,
+            "{} {}",
+            one.max_sse,
+            two.max_sse
+        );
+        assert_eq!(one.nodes, two.nodes, "another tree");
     }
 }
 

@@ -645,27 +645,12 @@ pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, F
     let count = bytes[11] as usize;
     let block = BlockId::new(face, level, u32_at(bytes, 12), u32_at(bytes, 16))
         .ok_or_else(|| FormatError::Field("block coordinates".into()))?;
-    if count != 0 && count != 4 {
-        return Err(FormatError::Field(format!("{count} children")));
-    }
     let raw_len = u32_at(bytes, 20);
     if raw_len as usize > MAX_RECORD_LEN * 4 {
         return Err(FormatError::Field(format!("raw length {raw_len}")));
     }
+    let children = read_child_refs(bytes, file_len)?;
     let payload_at = RECORD_FIXED_LEN + CHILD_REF_LEN * count;
-    if payload_at + 4 > len {
-        return Err(FormatError::Truncated {
-            what: "record children",
-            got: len,
-            need: payload_at + 4,
-        });
-    }
-    let mut children = Vec::with_capacity(count);
-    for k in 0..count {
-        let c = ChildRef::read(&bytes[RECORD_FIXED_LEN + CHILD_REF_LEN * k..]);
-        c.check(file_len)?;
-        children.push(c);
-    }
     Ok(Record {
         header: RecordHeader {
             tree,
@@ -700,6 +685,12 @@ pub fn record_child_refs(
             got: bytes.len() as u64,
         });
     }
+    read_child_refs(bytes, file_len)
+}
+
+/// The child count and references of a record of checked length: 0 or 4
+/// children, room for them and the CRC, each reference checked.
+fn read_child_refs(bytes: &[u8], file_len: Option<u64>) -> Result<Vec<ChildRef>, FormatError> {
     let count = bytes[11] as usize;
     if count != 0 && count != 4 {
         return Err(FormatError::Field(format!("{count} children")));
