@@ -246,6 +246,8 @@ pub struct Summary {
     /// Of the wasted bytes, those dropped on arrival or rejected (the rest
     /// were applied and never drawn).
     pub dropped_pct: f64,
+    /// Of the wasted bytes, child tables never used (`ours`' lookahead).
+    pub unused_tables_pct: f64,
     pub needed_over_delivered: Option<f64>,
     /// ∫ dt of the per-pixel mean SSE that the instant replay draws
     /// ([`InstantReplay::floor`]): the error the tolerance leaves.
@@ -337,6 +339,8 @@ struct JsonSummary<'a> {
     /// Part of `wasted_ratio` dropped on arrival or rejected; the rest was
     /// applied and never drawn.
     dropped_ratio: f64,
+    /// Part of `wasted_ratio` that is child tables never used.
+    unused_tables_ratio: f64,
     requests: u64,
     cancels: u64,
     needed_over_delivered: Option<f64>,
@@ -486,6 +490,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
             relevant_ratio: s.relevant_pct / 100.0,
             wasted_ratio: s.wasted_pct / 100.0,
             dropped_ratio: s.dropped_pct / 100.0,
+            unused_tables_ratio: s.unused_tables_pct / 100.0,
             requests: s.requests,
             cancels: s.cancels,
             needed_over_delivered: s.needed_over_delivered,
@@ -978,6 +983,7 @@ fn run_link(
             stops,
             wasted_pct: 100.0 * totals.wasted_ratio(),
             dropped_pct: 100.0 * totals.dropped_ratio(),
+            unused_tables_pct: 100.0 * totals.unused_tables_ratio(),
             needed_over_delivered,
             floor_integral,
             start_bound_s,
@@ -1061,7 +1067,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | to tolerance after each stop (start's bound) | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | to tolerance after each stop (start's bound) | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped, unused tables) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
@@ -1078,7 +1084,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {}{} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {}{} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %, {:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
@@ -1102,6 +1108,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             s.forced_pct,
             s.wasted_pct,
             s.dropped_pct,
+            s.unused_tables_pct,
             s.requests,
             s.cancels,
             s.first_frame_ms,

@@ -617,6 +617,7 @@ impl Client {
         // The child tables after the record (`LodRefsRequest`).
         if bytes.len() > req.record.size as usize {
             let trailer = bytes.split_off(req.record.size as usize);
+            self.since_last.bytes_tables += trailer.len() as u64;
             if req.tree == Tree::Elevation && self.config.lookahead {
                 self.lookahead
                     .learn_tables(req.block, &bytes, &trailer, self.frame);
@@ -849,12 +850,15 @@ impl Client {
         };
         // Asking ahead shortens a chain of round trips; when the link's
         // window is more than half full, the rate binds, not the round
-        // trip, and a request asked ahead (or a child table) would only
-        // take the place of one needed now.
+        // trip, and a new request asked ahead (or a child table) would only
+        // take the place of one needed now. Those already in flight stay
+        // asked while the prediction holds: cancelling them when the window
+        // fills, to ask them again when it empties, would only waste the
+        // link.
         let lookahead = self.config.lookahead
             && (!self.config.link_window
                 || self.queue.bytes_in_flight() * 2 <= self.link.window_bytes());
-        let ahead_loads = if lookahead {
+        let mut ahead_loads = if self.config.lookahead {
             let e = tree.elevation();
             let seeds: Vec<(BlockId, ChildRef)> = eager
                 .iter()
@@ -878,12 +882,12 @@ impl Client {
                         .filter_map(|(_, b)| e.get(b).map(|n| (*b, n.record))),
                 )
                 .collect();
-            let (pv, lr) = match predicted.as_ref().zip(later.as_ref()) {
+            let arrival = match predicted.as_ref().zip(later.as_ref()) {
                 Some((pv, lr)) => (pv, lr),
                 None => (&view, &refiner),
             };
             self.lookahead
-                .loads(tree, seeds, &self.decoding, (pv, lr), &refiner, self.frame)
+                .loads(tree, seeds, &self.decoding, arrival, &refiner, self.frame)
         } else {
             vec![]
         };
@@ -895,6 +899,9 @@ impl Client {
         let mut cancel = self.queue.retain_relevant(|t, b| {
             tree.wants_refine(t, b) || (t == Tree::Elevation && asked_ahead.contains(b))
         });
+        if !lookahead {
+            ahead_loads.retain(|r| self.queue.is_in_flight(r.tree, &r.block));
+        }
         let (ew, cw) = (
             tree.elevation().width as f64,
             tree.colour().map_or(0.0, |c| c.width as f64),
@@ -961,6 +968,10 @@ impl Client {
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
         let known = &self.lookahead;
+        let arrival = match predicted.as_ref().zip(later.as_ref()) {
+            Some((pv, lr)) => (pv, lr),
+            None => (&view, &refiner),
+        };
         let send: Vec<Outgoing> = chosen
             .send
             .into_iter()
@@ -973,7 +984,7 @@ impl Client {
                 forced: r.forced,
                 refs: lookahead
                     && r.tree == Tree::Elevation
-                    && wants_tables(tree, known, &refiner, r.block, &r.record),
+                    && wants_tables(tree, known, arrival, r.block, &r.record),
             })
             .collect();
         self.pending_ops = ops;
@@ -1019,10 +1030,13 @@ impl Client {
         // Records applied earlier and drawn now.
         if !self.not_drawn.is_empty() {
             let tree = &self.tree;
-            let mut later = 0u64;
+            let lookahead = &mut self.lookahead;
+            let (mut later, mut tables) = (0u64, 0u64);
             self.not_drawn.retain(|(t, b), bytes| {
                 if drawn_at_lod0(*t, b) {
-                    later += *bytes;
+                    let c = lookahead.credit(*t, b);
+                    later += *bytes + c;
+                    tables += c;
                     return false;
                 }
                 // Merged away: it can no longer be drawn (split, it may be
@@ -1032,10 +1046,13 @@ impl Client {
                     .is_some_and(|n| n.lod == 0)
             });
             self.totals.bytes_drawn_later += later;
+            self.totals.bytes_tables_used += tables;
         }
         for (t, b, bytes, forced) in &applied {
             if drawn_at_lod0(*t, b) {
-                self.totals.bytes_relevant += *bytes as u64;
+                let c = self.lookahead.credit(*t, b);
+                self.totals.bytes_relevant += *bytes as u64 + c;
+                self.totals.bytes_tables_used += c;
             } else {
                 if *forced {
                     self.totals.bytes_forced += *bytes as u64;
@@ -1070,6 +1087,7 @@ impl Client {
         self.totals.cancelled += cancel.len() as u64;
         self.totals.bytes_received += stats.bytes_received;
         self.totals.bytes_dropped += stats.bytes_dropped;
+        self.totals.bytes_tables += stats.bytes_tables;
         self.totals.refines_applied += stats.refines_applied as u64;
         self.totals.records_rejected += stats.records_rejected as u64;
         stats.totals = self.totals;

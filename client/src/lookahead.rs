@@ -32,11 +32,10 @@ use crate::visibility::View;
 use planet_core::format::{self, ChildRef, Tree};
 use planet_core::BlockId;
 
-/// A block's own projected error, in tolerances, above which its request
-/// asks for its children's tables: its children are then likely to split
-/// and its grandchildren to load (a level roughly halves the error), so
-/// the tables will be used. Below it, the 97 bytes per child would mostly
-/// travel for nothing.
+/// A block's own error projected at one of its children, in tolerances,
+/// above which that child is likely to split and its table to be used: a
+/// level roughly halves the error, and the child splits when its children's
+/// error (two levels below) projects above the tolerance.
 pub const REFS_AT: f64 = 4.0;
 
 /// Frames a learned table or a held record is kept without being used.
@@ -45,10 +44,19 @@ pub const KEEP_FRAMES: u64 = 90;
 /// Held records and learned tables at most (a bound on memory).
 pub const MAX_ENTRIES: usize = 4096;
 
+/// Bytes of one child's table in a trailer: its count byte and four
+/// 24-byte references (docs/PROTOCOL.md §4.8).
+const TABLE_BYTES: u64 = 1 + 4 * 24;
+
 /// The child references learned before their blocks' records were applied.
 #[derive(Debug, Default)]
 pub struct Lookahead {
     known: FastMap<BlockId, (Vec<ChildRef>, u64)>,
+    /// Blocks whose table came in a trailer and has not been credited yet
+    /// ([`Lookahead::credit`]), with the frame it came.
+    tables: FastMap<BlockId, u64>,
+    /// Blocks asked ahead, with the block whose table asked them.
+    asked_via: FastMap<BlockId, BlockId>,
 }
 
 impl Lookahead {
@@ -83,10 +91,29 @@ impl Lookahead {
         };
         for (k, t) in tables.into_iter().enumerate() {
             if let Some(t) = t.filter(|t| t.len() == 4) {
-                self.insert(block.child(k), t, frame);
+                let child = block.child(k);
+                self.insert(child, t, frame);
+                if self.tables.len() < MAX_ENTRIES {
+                    self.tables.insert(child, frame);
+                }
             }
         }
         true
+    }
+
+    /// The trailer bytes to count as used now that the record of `block`
+    /// in `tree` was drawn: the table (97 bytes) of the block whose child
+    /// table asked `block` ahead, once per table. A table is used when one
+    /// of its references led to a drawn record, as the references inside a
+    /// record count with the record (stats.rs).
+    pub fn credit(&mut self, tree: Tree, block: &BlockId) -> u64 {
+        if tree != Tree::Elevation {
+            return 0;
+        }
+        self.asked_via
+            .remove(block)
+            .and_then(|via| self.tables.remove(&via))
+            .map_or(0, |_| TABLE_BYTES)
     }
 
     /// Learns the children's references of an elevation record that arrived
@@ -116,6 +143,12 @@ impl Lookahead {
             frame.saturating_sub(*at) <= KEEP_FRAMES
                 && e.get(b).is_none_or(|n| n.lod == 1 && !n.split)
         });
+        // A table is credited by a record drawn within a few round trips of
+        // its arrival, or never.
+        self.tables
+            .retain(|_, at| frame.saturating_sub(*at) <= 2 * KEEP_FRAMES);
+        let tables = &self.tables;
+        self.asked_via.retain(|_, via| tables.contains_key(via));
     }
 
     /// The loads of the children of blocks whose record is coming (`seeds`:
@@ -187,6 +220,9 @@ impl Lookahead {
                     importance: now.load_priority(&m, 1, cid.level, b.centre, r.size),
                     forced: false,
                 });
+                if self.tables.contains_key(&id) && self.asked_via.len() < MAX_ENTRIES {
+                    self.asked_via.insert(cid, id);
+                }
                 work.push((cid, *r));
             }
         }
@@ -195,26 +231,42 @@ impl Lookahead {
 }
 
 /// Whether a request for `block` (its record `record`) should ask for its
-/// children's tables: they are not known yet, and its own error projected
-/// by `refiner` is above [`REFS_AT`] tolerances.
+/// children's tables: they are not known yet, and one of its four children
+/// at least is likely to split. A child's table is used when the child
+/// splits, that is when its own children (two levels below `block`, their
+/// error about a quarter of `block`'s) project above the tolerance: the
+/// child is visible and the block's error projected at the child's ball is
+/// above [`REFS_AT`] tolerances, in the view predicted for the record's
+/// arrival (`arrival`), when the tables are used. The child's bounds are
+/// those of its area with `block`'s height range (conservative: its own is
+/// inside it). Testing each child rather than the block's nearest point
+/// leaves out the tables of a block whose visible children are all far
+/// (docs/BENCHMARKS.md: unused tables on a low, fast flight).
 pub(crate) fn wants_tables(
     tree: &PartialTree,
     known: &Lookahead,
-    refiner: &Refiner,
+    arrival: (&View, &Refiner),
     block: BlockId,
     record: &ChildRef,
 ) -> bool {
+    let (view, refiner) = arrival;
     if known.knows(&block) {
         return false;
     }
-    let b = tree.bounds_of(block, record);
     let w = tree.elevation().width as f64;
-    let m = refiner.measure(
-        Kind::Elevation,
-        &Footprint::ball(&b),
-        w,
-        record.error as f64,
-        0.0,
-    );
-    m.a > refiner.tolerance() * REFS_AT
+    let at = refiner.tolerance() * REFS_AT;
+    block.children().into_iter().any(|c| {
+        let b = tree.bounds_of(c, record);
+        if !view.is_visible(&b) {
+            return false;
+        }
+        let m = refiner.measure(
+            Kind::Elevation,
+            &Footprint::ball(&b),
+            w,
+            record.error as f64,
+            0.0,
+        );
+        m.a > at
+    })
 }

@@ -36,6 +36,9 @@ pub struct FrameStats {
     pub bytes_received: u64,
     /// Of those, bytes dropped (cancelled, stale or already loaded).
     pub bytes_dropped: u64,
+    /// Of those, bytes of child tables after a record
+    /// ([`crate::lookahead`]).
+    pub bytes_tables: u64,
     /// Records rejected (corrupt, wrong block) since the previous frame.
     pub records_rejected: usize,
     /// Largest screen-space error (pixels) over drawn blocks.
@@ -68,6 +71,14 @@ pub struct Totals {
     pub bytes_dropped: u64,
     /// Bytes of rejected records.
     pub bytes_rejected: u64,
+    /// Bytes of child tables received after records ([`crate::lookahead`]).
+    /// A table counts with the relevant bytes (or those drawn later) when a
+    /// record asked through it was drawn on arrival (later): its references
+    /// were needed to draw, as the references inside a record count with
+    /// the record. The others are wasted.
+    pub bytes_tables: u64,
+    /// Of those, the bytes of tables counted as used.
+    pub bytes_tables_used: u64,
     /// Bytes of records applied and drawn at their new LOD on arrival.
     pub bytes_relevant: u64,
     /// Bytes of records applied, not drawn on arrival, that were loaded for
@@ -116,6 +127,18 @@ impl Totals {
             0.0
         } else {
             (self.bytes_dropped + self.bytes_rejected) as f64 / self.bytes_received as f64
+        }
+    }
+
+    /// Bytes of child tables never used over received bytes: the part of
+    /// [`Totals::wasted_ratio`] that traveled for asking ahead (0 when
+    /// nothing was received).
+    pub fn unused_tables_ratio(&self) -> f64 {
+        if self.bytes_received == 0 {
+            0.0
+        } else {
+            self.bytes_tables.saturating_sub(self.bytes_tables_used) as f64
+                / self.bytes_received as f64
         }
     }
 

@@ -737,6 +737,8 @@ struct Descent {
     dropped: u64,
     /// The final elevation tree's blocks, sorted.
     nodes: Vec<BlockId>,
+    /// The client's totals at the end.
+    totals: planet_client::stats::Totals,
 }
 
 /// A descent from 2 km over the ground to convergence with `cfg` behind
@@ -775,6 +777,7 @@ fn descend(
                 max_sse: out.draw.iter().map(|d| d.screen_error).fold(0.0, f64::max),
                 dropped: c.totals().bytes_dropped,
                 nodes,
+                totals: c.totals(),
             };
         }
     }
@@ -877,6 +880,21 @@ fn two_levels_per_round_trip_with_the_child_tables() {
             two.max_sse
         );
         assert_eq!(one.nodes, two.nodes, "another tree");
+        // The tables travel with the records; those through which a drawn
+        // record was asked count as used (97 bytes each), no more than came.
+        let t = two.totals;
+        eprintln!(
+            "  tables: {} bytes, {} used; relevant {:.4}, cancelled {}",
+            t.bytes_tables,
+            t.bytes_tables_used,
+            t.relevant_ratio(),
+            t.cancelled
+        );
+        assert_eq!(one.totals.bytes_tables, 0);
+        assert!(t.bytes_tables_used > 0 && t.bytes_tables_used <= t.bytes_tables);
+        assert_eq!(t.bytes_tables_used % 97, 0);
+        // Nothing asked ahead is given up on a straight descent.
+        assert_eq!(t.cancelled, 0, "{t:?}");
     }
 }
 

@@ -24,7 +24,7 @@ use planet_protocol::{
     Message, ProtocolError, RequestKind, Response, ResponseDecoder, Welcome,
 };
 use quinn::VarInt;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::{JoinHandle, JoinSet};
 
 /// Why a connection or a fetch failed.
@@ -230,6 +230,10 @@ struct Inner {
     ctrl_send: Mutex<Option<quinn::SendStream>>,
     goodbye: watch::Receiver<Option<ErrorCode>>,
     ctrl_task: JoinHandle<()>,
+    // Opens request streams in the order the requests are made
+    // ([`open_in_order`]).
+    opener: mpsc::UnboundedSender<Open>,
+    opener_task: JoinHandle<()>,
     welcome: Welcome,
     fetch_timeout: Option<Duration>,
     zero_rtt: bool,
@@ -239,6 +243,7 @@ struct Inner {
 impl Drop for Inner {
     fn drop(&mut self) {
         self.ctrl_task.abort();
+        self.opener_task.abort();
         self.conn
             .close(VarInt::from_u32(quic::CONNECTION_CLOSED_NORMAL), b"done");
     }
@@ -370,12 +375,16 @@ impl Connection {
         };
         let (goodbye_tx, goodbye) = watch::channel(None);
         let ctrl_task = tokio::spawn(read_control(recv, hs.into_decoder(), goodbye_tx));
+        let (opener, opens) = mpsc::unbounded_channel();
+        let opener_task = tokio::spawn(open_in_order(conn.clone(), opens));
         let inner = Inner {
             _endpoint: endpoint,
             conn,
             ctrl_send: Mutex::new(Some(send)),
             goodbye,
             ctrl_task,
+            opener,
+            opener_task,
             welcome: welcome.clone(),
             fetch_timeout: opts.fetch_timeout,
             zero_rtt,
@@ -442,8 +451,19 @@ impl Connection {
 
     /// Fetches the record at `offset` of `size` bytes. Dropping the future
     /// cancels the request (`recv.stop(STREAM_CANCELLED)`).
-    pub async fn fetch(&self, id: u64, offset: u64, size: u32) -> Result<Vec<u8>, NetError> {
-        self.fetch_kind(id, offset, size, RequestKind::Record).await
+    ///
+    /// The request takes its place in the connection's order when this is
+    /// called, not when the future is first polled: requests made one after
+    /// the other open their streams, reach the server and are answered in
+    /// that order (the server sends responses in the order of the requests,
+    /// docs/PROTOCOL.md §5.2), whatever order the tasks awaiting them run in.
+    pub fn fetch(
+        &self,
+        id: u64,
+        offset: u64,
+        size: u32,
+    ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
+        self.fetch_kind(id, offset, size, RequestKind::Record)
     }
 
     /// Fetches the record at `offset` of `size` bytes with a
@@ -451,64 +471,143 @@ impl Connection {
     /// `size` bytes followed by the trailer of its children's child tables
     /// (at most [`planet_protocol::MAX_REFS_TRAILER_LEN`] bytes, empty for a
     /// leaf; `planet_core::format::parse_child_tables` reads it). Dropping
-    /// the future cancels the request, as for [`Connection::fetch`].
-    pub async fn fetch_refs(&self, id: u64, offset: u64, size: u32) -> Result<Vec<u8>, NetError> {
+    /// the future cancels the request, and the request takes its place in
+    /// the connection's order when this is called, as for
+    /// [`Connection::fetch`].
+    pub fn fetch_refs(
+        &self,
+        id: u64,
+        offset: u64,
+        size: u32,
+    ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
         self.fetch_kind(id, offset, size, RequestKind::RecordAndRefs)
-            .await
     }
 
-    async fn fetch_kind(
+    fn fetch_kind(
         &self,
         id: u64,
         offset: u64,
         size: u32,
         kind: RequestKind,
-    ) -> Result<Vec<u8>, NetError> {
-        let fut = self.fetch_inner(LodRequest { id, offset, size }, kind);
-        match self.inner.fetch_timeout {
-            Some(t) => tokio::time::timeout(t, fut)
-                .await
-                .unwrap_or(Err(NetError::Timeout)),
-            None => fut.await,
+    ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
+        let req = LodRequest { id, offset, size };
+        // Queued now, in call order.
+        let opened = req
+            .encode_frame_as(kind)
+            .map_err(NetError::from)
+            .and_then(|frame| {
+                let (reply, opened) = oneshot::channel();
+                self.inner
+                    .opener
+                    .send(Open { frame, reply })
+                    .map_err(|_| closed_error())?;
+                Ok(opened)
+            });
+        // The connection lives while one of its requests does.
+        let this = self.clone();
+        async move {
+            let fut = read_response(opened, req, kind);
+            let r = match this.inner.fetch_timeout {
+                Some(t) => tokio::time::timeout(t, fut)
+                    .await
+                    .unwrap_or(Err(NetError::Timeout)),
+                None => fut.await,
+            };
+            drop(this);
+            r
         }
     }
 
     /// Spawns [`Connection::fetch`] on the current tokio runtime and returns
     /// a handle that can cancel it.
     pub fn spawn_fetch(&self, id: u64, offset: u64, size: u32) -> FetchHandle {
-        let conn = self.clone();
-        let task = tokio::spawn(async move { conn.fetch(id, offset, size).await });
+        let fut = self.fetch(id, offset, size);
+        let task = tokio::spawn(fut);
         FetchHandle { id, task }
     }
+}
 
-    async fn fetch_inner(&self, req: LodRequest, kind: RequestKind) -> Result<Vec<u8>, NetError> {
-        let (send, recv) = self.inner.conn.open_bi().await?;
-        let mut guard = StreamGuard {
-            send,
-            recv,
-            finished: false,
-            done: false,
+/// The streams of a request whose frame is written and finished.
+type Opened = Result<(quinn::SendStream, quinn::RecvStream), NetError>;
+
+/// A request waiting for its stream ([`open_in_order`]).
+struct Open {
+    frame: Vec<u8>,
+    reply: oneshot::Sender<Opened>,
+}
+
+/// The error of a request whose connection's opener is gone.
+fn closed_error() -> NetError {
+    NetError::ConnectionLost {
+        code: None,
+        reason: "connection closed".into(),
+    }
+}
+
+/// Opens each request's stream and writes its frame, one request at a
+/// time in the order they were made. The server answers in the order the
+/// requests arrive (its send fairness is off, server/src/lib.rs) and the
+/// client makes them most important first; a task per request opening its
+/// own stream would race the others (tokio runs the task spawned last
+/// first), and the first record the client needed could come last. A
+/// request cancelled before its turn opens no stream.
+async fn open_in_order(conn: quinn::Connection, mut opens: mpsc::UnboundedReceiver<Open>) {
+    while let Some(mut o) = opens.recv().await {
+        let streams = tokio::select! {
+            r = conn.open_bi() => r,
+            _ = o.reply.closed() => continue,
         };
-        let frame = req.encode_frame_as(kind)?;
-        guard.send.write_all(&frame).await?;
-        let _ = guard.send.finish();
-        guard.finished = true;
-        let mut dec = ResponseDecoder::for_kind(req, kind);
-        loop {
-            match guard.recv.read_chunk(1 << 20, true).await {
-                Ok(Some(chunk)) => dec.push(&chunk.bytes)?,
-                Ok(None) => break,
-                Err(e) => {
-                    guard.done = true;
-                    return Err(e.into());
+        let opened = match streams {
+            Ok((mut send, recv)) => match send.write_all(&o.frame).await {
+                Ok(()) => {
+                    let _ = send.finish();
+                    Ok((send, recv))
                 }
+                Err(e) => Err(NetError::from(e)),
+            },
+            Err(e) => Err(NetError::from(e)),
+        };
+        // Cancelled meanwhile: the guard of the streams stops them.
+        if let Err(Ok((send, recv))) = o.reply.send(opened) {
+            drop(StreamGuard {
+                send,
+                recv,
+                finished: true,
+                done: false,
+            });
+        }
+    }
+}
+
+/// Waits for the request's streams ([`open_in_order`]) and reads its
+/// response.
+async fn read_response(
+    opened: Result<oneshot::Receiver<Opened>, NetError>,
+    req: LodRequest,
+    kind: RequestKind,
+) -> Result<Vec<u8>, NetError> {
+    let (send, recv) = opened?.await.map_err(|_| closed_error())??;
+    let mut guard = StreamGuard {
+        send,
+        recv,
+        finished: true,
+        done: false,
+    };
+    let mut dec = ResponseDecoder::for_kind(req, kind);
+    loop {
+        match guard.recv.read_chunk(1 << 20, true).await {
+            Ok(Some(chunk)) => dec.push(&chunk.bytes)?,
+            Ok(None) => break,
+            Err(e) => {
+                guard.done = true;
+                return Err(e.into());
             }
         }
-        guard.done = true;
-        match dec.finish()? {
-            Response::Record { body, .. } => Ok(body),
-            Response::Error { error, .. } => Err(NetError::Server(error)),
-        }
+    }
+    guard.done = true;
+    match dec.finish()? {
+        Response::Record { body, .. } => Ok(body),
+        Response::Error { error, .. } => Err(NetError::Server(error)),
     }
 }
 
@@ -922,15 +1021,15 @@ async fn run_session(
                 let user_closed = serve_requests(
                     &mut cmd_rx,
                     &ev,
+                    // Called in the order of the requests: each takes its
+                    // place in the connection's order at once.
                     move |id, offset, size, refs| {
-                        let c = c.clone();
-                        async move {
-                            if refs {
-                                c.fetch_refs(id, offset, size).await
-                            } else {
-                                c.fetch(id, offset, size).await
-                            }
-                        }
+                        let kind = if refs {
+                            RequestKind::RecordAndRefs
+                        } else {
+                            RequestKind::Record
+                        };
+                        c.fetch_kind(id, offset, size, kind)
                     },
                     conn.closed(),
                 )
