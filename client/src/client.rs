@@ -848,6 +848,12 @@ impl Client {
         } else {
             vec![]
         };
+        // The view and refiner of a request's arrival (the present ones
+        // without a prediction).
+        let arrival = match predicted.as_ref().zip(later.as_ref()) {
+            Some((pv, lr)) => (pv, lr),
+            None => (&view, &refiner),
+        };
         // Asking ahead shortens a chain of round trips; when the link's
         // window is more than half full, the rate binds, not the round
         // trip, and a new request asked ahead (or a child table) would only
@@ -882,10 +888,6 @@ impl Client {
                         .filter_map(|(_, b)| e.get(b).map(|n| (*b, n.record))),
                 )
                 .collect();
-            let arrival = match predicted.as_ref().zip(later.as_ref()) {
-                Some((pv, lr)) => (pv, lr),
-                None => (&view, &refiner),
-            };
             self.lookahead
                 .loads(tree, seeds, &self.decoding, arrival, &refiner, self.frame)
         } else {
@@ -968,10 +970,6 @@ impl Client {
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
         let known = &self.lookahead;
-        let arrival = match predicted.as_ref().zip(later.as_ref()) {
-            Some((pv, lr)) => (pv, lr),
-            None => (&view, &refiner),
-        };
         let send: Vec<Outgoing> = chosen
             .send
             .into_iter()

@@ -44,10 +44,6 @@ pub const KEEP_FRAMES: u64 = 90;
 /// Held records and learned tables at most (a bound on memory).
 pub const MAX_ENTRIES: usize = 4096;
 
-/// Bytes of one child's table in a trailer: its count byte and four
-/// 24-byte references (docs/PROTOCOL.md §4.8).
-const TABLE_BYTES: u64 = 1 + 4 * 24;
-
 /// The child references learned before their blocks' records were applied.
 #[derive(Debug, Default)]
 pub struct Lookahead {
@@ -113,7 +109,7 @@ impl Lookahead {
         self.asked_via
             .remove(block)
             .and_then(|via| self.tables.remove(&via))
-            .map_or(0, |_| TABLE_BYTES)
+            .map_or(0, |_| format::CHILD_TABLE_LEN as u64)
     }
 
     /// Learns the children's references of an elevation record that arrived

@@ -624,9 +624,8 @@ pub fn record_checksum_ok(bytes: &[u8]) -> bool {
         && crc32fast::hash(&bytes[..bytes.len() - 4]) == u32_at(bytes, bytes.len() - 4)
 }
 
-/// Parse and fully check a record: magic, length equal to `bytes.len()`,
-/// checksum, and field ranges. `file_len`, when known, bounds the children.
-pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, FormatError> {
+/// The stored length of the record in `bytes`, which must be all of it.
+fn whole_record_len(bytes: &[u8]) -> Result<usize, FormatError> {
     let len = peek_record_len(bytes)? as usize;
     if len != bytes.len() {
         return Err(FormatError::Length {
@@ -635,6 +634,13 @@ pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, F
             got: bytes.len() as u64,
         });
     }
+    Ok(len)
+}
+
+/// Parse and fully check a record: magic, length equal to `bytes.len()`,
+/// checksum, and field ranges. `file_len`, when known, bounds the children.
+pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, FormatError> {
+    let len = whole_record_len(bytes)?;
     if !record_checksum_ok(bytes) {
         return Err(FormatError::Checksum("record"));
     }
@@ -666,9 +672,11 @@ pub fn parse_record(bytes: &[u8], file_len: Option<u64>) -> Result<Record<'_>, F
 /// to read or its checksum): the client learns nothing about it early.
 pub const CHILD_TABLE_UNKNOWN: u8 = 0xff;
 
-/// Largest trailer of child tables: four children, each a count byte and
-/// four references.
-pub const MAX_CHILD_TABLES_LEN: usize = 4 * (1 + 4 * CHILD_REF_LEN);
+/// One child's full table in a trailer: its count byte and four references.
+pub const CHILD_TABLE_LEN: usize = 1 + 4 * CHILD_REF_LEN;
+
+/// Largest trailer of child tables: four children, each a full table.
+pub const MAX_CHILD_TABLES_LEN: usize = 4 * CHILD_TABLE_LEN;
 
 /// The child references of a record whose checksum was already checked:
 /// the fixed fields and the references only (no CRC, no payload), each
@@ -677,14 +685,7 @@ pub fn record_child_refs(
     bytes: &[u8],
     file_len: Option<u64>,
 ) -> Result<Vec<ChildRef>, FormatError> {
-    let len = peek_record_len(bytes)? as usize;
-    if len != bytes.len() {
-        return Err(FormatError::Length {
-            what: "record",
-            stored: len as u64,
-            got: bytes.len() as u64,
-        });
-    }
+    whole_record_len(bytes)?;
     read_child_refs(bytes, file_len)
 }
 
