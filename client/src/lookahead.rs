@@ -213,7 +213,14 @@ impl Lookahead {
                     tree: Tree::Elevation,
                     block: cid,
                     record: *r,
-                    importance: now.load_priority(&m, 1, cid.level, b.centre, r.size),
+                    importance: now.load_priority(
+                        Kind::Elevation,
+                        &m,
+                        1,
+                        cid.level,
+                        b.centre,
+                        r.size,
+                    ),
                     forced: false,
                 });
                 if self.tables.contains_key(&id) && self.asked_via.len() < MAX_ENTRIES {

@@ -46,6 +46,13 @@
 //! minimises the error integrated over the flight when the link is the
 //! bottleneck. Splits cost no bytes and go by `s0`.
 //!
+//! The two trees' errors are weighed in one unit, the displacement on
+//! screen: a geometric error of `s` pixels moves the surface by up to `s`
+//! pixels, while texels of `t` pixels place a colour edge within half a
+//! texel of where it is ([`COLOUR_DISPLACEMENT`]). So a colour record's
+//! gain in the priority is half its texels' shrinkage; its refinement test
+//! stays one texel per pixel, as mip selection has it.
+//!
 //! The other policies are baselines measured in the same run
 //! (`planet-bench flight --policy`), each with the same refinement test and
 //! tolerance where its source has one, so that the comparison is of
@@ -87,6 +94,12 @@ pub const MERGE_AT: f64 = 0.25;
 /// Bytes a request costs besides its record (request, stream and response
 /// framing, packet headers; docs/PROTOCOL.md), in the priority per byte.
 pub const REQUEST_OVERHEAD: f64 = 256.0;
+/// Screen displacement of a colour edge per texel of projected size: a
+/// texel `t` pixels wide puts the colour it holds within `t/2` pixels of
+/// where it is, so a colour record that shrinks the texels from `s1` to
+/// `s0` pixels removes `(s1 − s0)/2` pixels of displacement, the unit of
+/// an elevation record's gain (its geometric error projected).
+pub const COLOUR_DISPLACEMENT: f64 = 0.5;
 
 /// A client policy: refinement test and request order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
@@ -517,13 +530,26 @@ impl Refiner {
         self.leaf(&m, lod).load
     }
 
-    /// Priority (higher first) of loading LOD 0 of a leaf with LOD `lod`,
-    /// at `level`, centred at `centre`, whose record is `size` bytes.
-    pub fn load_priority(&self, m: &Measure, lod: u8, level: u8, centre: DVec3, size: u32) -> f64 {
+    /// Priority (higher first) of loading LOD 0 of a leaf of tree `kind`
+    /// with LOD `lod`, at `level`, centred at `centre`, whose record is
+    /// `size` bytes.
+    pub fn load_priority(
+        &self,
+        kind: Kind,
+        m: &Measure,
+        lod: u8,
+        level: u8,
+        centre: DVec3,
+        size: u32,
+    ) -> f64 {
         match self.policy {
             Policy::Thesis => refine_importance(lod, m.a),
             Policy::Ours => {
-                let gain = (m.a - m.b).max(m.a * 1e-3);
+                let weight = match kind {
+                    Kind::Elevation => 1.0,
+                    Kind::Colour => COLOUR_DISPLACEMENT,
+                };
+                let gain = weight * (m.a - m.b).max(m.a * 1e-3);
                 let p = gain / (size as f64 + REQUEST_OVERHEAD);
                 if p.is_finite() {
                     p
@@ -694,7 +720,7 @@ mod tests {
             for p in Policy::ALL {
                 let r = Refiner::new(p, &v, 1e4, tol);
                 let m = r.measure(Kind::Elevation, &ball(c, radius), 64.0, e1, e0);
-                prop_assert!(r.load_priority(&m, 1, 10, c, 3000).is_finite());
+                prop_assert!(r.load_priority(Kind::Elevation, &m, 1, 10, c, 3000).is_finite());
                 prop_assert!(r.split_priority(&m, 10, c).is_finite());
             }
         }
@@ -850,6 +876,38 @@ mod tests {
     }
 
     #[test]
+    fn colour_gain_counts_as_half_a_texel_of_displacement() {
+        let v = view(DVec3::new(6.4e6, 0.0, 0.0), 60.0);
+        let r = Refiner::new(Policy::Ours, &v, 1e4, 1.0);
+        let c = DVec3::new(6.37e6, 0.0, 0.0);
+        let m = Measure {
+            a: 4.0,
+            b: 2.0,
+            dist: 3e4,
+            scale: 1.0,
+        };
+        let e = r.load_priority(Kind::Elevation, &m, 1, 5, c, 4000);
+        let col = r.load_priority(Kind::Colour, &m, 1, 5, c, 4000);
+        // The same pixels and bytes: the elevation record first, the colour
+        // one at half its priority, and ahead of it again once its texels
+        // shrink by more than twice the elevation's error.
+        assert!(e > col, "{e} {col}");
+        assert!((col / e - COLOUR_DISPLACEMENT).abs() < 1e-12);
+        let blurry = Measure {
+            a: 10.0,
+            b: 5.0,
+            ..m
+        };
+        assert!(r.load_priority(Kind::Colour, &blurry, 1, 5, c, 4000) > e);
+        // The other policies do not tell the trees apart.
+        let ces = Refiner::new(Policy::Cesium, &v, 1e4, 1.0);
+        assert_eq!(
+            ces.load_priority(Kind::Elevation, &m, 1, 5, c, 4000),
+            ces.load_priority(Kind::Colour, &m, 1, 5, c, 4000)
+        );
+    }
+
+    #[test]
     fn cesium_prefers_tiles_ahead_and_near() {
         let v = view(DVec3::new(7e6, 0.0, 0.0), 60.0);
         let r = Refiner::new(Policy::Cesium, &v, 1e4, 2.0);
@@ -857,8 +915,14 @@ mod tests {
         let aside = DVec3::new(6.4e6, 3e5, 0.0);
         let ma = r.measure(Kind::Elevation, &ball(ahead, 1e3), 64.0, 10.0, 5.0);
         let ms = r.measure(Kind::Elevation, &ball(aside, 1e3), 64.0, 10.0, 5.0);
-        assert!(r.load_priority(&ma, 1, 5, ahead, 100) > r.load_priority(&ms, 1, 5, aside, 100));
+        assert!(
+            r.load_priority(Kind::Elevation, &ma, 1, 5, ahead, 100)
+                > r.load_priority(Kind::Elevation, &ms, 1, 5, aside, 100)
+        );
         let b = Refiner::new(Policy::Breadth, &v, 1e4, 2.0);
-        assert!(b.load_priority(&ma, 1, 9, ahead, 100) < b.load_priority(&ms, 1, 5, aside, 100));
+        assert!(
+            b.load_priority(Kind::Elevation, &ma, 1, 9, ahead, 100)
+                < b.load_priority(Kind::Elevation, &ms, 1, 5, aside, 100)
+        );
     }
 }

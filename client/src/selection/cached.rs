@@ -976,6 +976,7 @@ impl Selector {
                     block: id,
                     record: self.cold[h.slot as usize].record,
                     importance: refiner.load_priority(
+                        Kind::Elevation,
                         &mm,
                         h.lod,
                         id.level,
@@ -1059,6 +1060,7 @@ impl Selector {
                         block: c.id,
                         record: c.record,
                         importance: refiner.load_priority(
+                            Kind::Colour,
                             &mm,
                             c.lod,
                             c.id.level,

@@ -256,7 +256,14 @@ pub(crate) fn children_loads(
                 tree: Tree::Elevation,
                 block: id,
                 record,
-                importance: refiner.load_priority(&m, 1, id.level, bounds.centre, record.size),
+                importance: refiner.load_priority(
+                    Kind::Elevation,
+                    &m,
+                    1,
+                    id.level,
+                    bounds.centre,
+                    record.size,
+                ),
                 forced: false,
             });
         }

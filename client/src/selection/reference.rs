@@ -78,7 +78,14 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 continue;
             }
             if d.load {
-                let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
+                let p = refiner.load_priority(
+                    Kind::Elevation,
+                    &m,
+                    n.lod,
+                    id.level,
+                    b.centre,
+                    n.record.size,
+                );
                 cx.load(Tree::Elevation, id, p, false);
             } else if d.split && n.can_split_data().is_ok() {
                 let p = refiner.split_priority(&m, id.level, b.centre);
@@ -131,7 +138,14 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                     continue;
                 }
                 if d.load {
-                    let p = refiner.load_priority(&m, n.lod, id.level, b.centre, n.record.size);
+                    let p = refiner.load_priority(
+                        Kind::Colour,
+                        &m,
+                        n.lod,
+                        id.level,
+                        b.centre,
+                        n.record.size,
+                    );
                     cx.load(Tree::Colour, id, p, false);
                 } else if d.split && n.can_split_data().is_ok() {
                     let p = refiner.split_priority(&m, id.level, b.centre);
