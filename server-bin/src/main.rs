@@ -109,6 +109,12 @@ struct RunArgs {
     /// for their Welcome). Overrides `zero_rtt` in the config.
     #[arg(long)]
     no_zero_rtt: bool,
+    /// Answer `LodRefsRequest` (0x12) as a server that predates it does
+    /// (`unknown_message`, id 0): no child reads on behalf of clients,
+    /// which then ask one tree level per round trip. Overrides
+    /// `child_tables` in the config.
+    #[arg(long)]
+    no_child_tables: bool,
     /// Tokio worker threads (default: one per CPU). 1 runs everything on
     /// a single-threaded runtime: no cross-thread wake-ups, one core at most.
     #[arg(long)]
@@ -196,6 +202,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if args.no_zero_rtt {
         cfg.zero_rtt = false;
+    }
+    if args.no_child_tables {
+        cfg.child_tables = false;
     }
     if let (Some(c), Some(k)) = (&args.cert, &args.key) {
         cfg.tls = TlsSource::Pem {

@@ -12,6 +12,7 @@
 //! initial_window = 65536            # congestion window of a new connection (bytes)
 //! congestion = "bbr"                # "bbr" | "cubic" (congestion controller)
 //! zero_rtt = true                   # accept 0-RTT Hello on resumed sessions
+//! child_tables = true               # answer LodRefsRequest (0x12) with child tables
 //! initial_rtt_ms = 100              # RTT assumed before the first sample
 //! handshake_timeout_ms = 5000       # whole pre-auth phase (QUIC, Hello, Welcome)
 //! handshake_timeout_under_load_ms = 1000  # the same beyond retry_above_pending
@@ -322,6 +323,13 @@ pub struct ServerConfig {
     /// stateful and single-use (rustls `ServerSessionMemoryCache::take`),
     /// and every request is an idempotent read (docs/SECURITY.md).
     pub zero_rtt: bool,
+    /// Answer `LodRefsRequest` (0x12, docs/PROTOCOL.md §4.8): a record
+    /// with its children's child tables, read from up to four more
+    /// records. `false` (`child_tables = false` or `--no-child-tables`)
+    /// answers it as a server that predates it does, an error head with
+    /// id 0 and `unknown_message`, and clients fall back to `LodRequest`
+    /// (one tree level per round trip) for the rest of the connection.
+    pub child_tables: bool,
     /// Round-trip time assumed before the first sample, ms (RFC 9002's
     /// 333 ms by default in quinn; Chromium uses 100 ms). It sets the
     /// pacing rate of the first flight: a 0-RTT Welcome goes out before any
@@ -397,6 +405,7 @@ struct FileConfig {
     initial_window: Option<u64>,
     congestion: Option<String>,
     zero_rtt: Option<bool>,
+    child_tables: Option<bool>,
     initial_rtt_ms: Option<u32>,
     handshake_timeout_ms: Option<u32>,
     handshake_timeout_under_load_ms: Option<u32>,
@@ -509,6 +518,7 @@ impl ServerConfig {
             initial_window: DEFAULT_INITIAL_WINDOW,
             congestion: Congestion::default(),
             zero_rtt: true,
+            child_tables: true,
             initial_rtt_ms: DEFAULT_INITIAL_RTT_MS,
             handshake_timeout: Duration::from_millis(u64::from(DEFAULT_HANDSHAKE_TIMEOUT_MS)),
             handshake_timeout_under_load: Duration::from_millis(u64::from(
@@ -585,6 +595,9 @@ impl ServerConfig {
         }
         if let Some(z) = file.zero_rtt {
             cfg.zero_rtt = z;
+        }
+        if let Some(c) = file.child_tables {
+            cfg.child_tables = c;
         }
         if let Some(r) = file.initial_rtt_ms {
             cfg.initial_rtt_ms = r;

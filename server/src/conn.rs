@@ -735,6 +735,20 @@ async fn serve_request(
             return;
         }
     };
+    if kind == RequestKind::RecordAndRefs && !ctx.shared.cfg.child_tables {
+        // Turned off: answered as by a server that predates 0x12 (an
+        // unknown frame, id 0; docs/PROTOCOL.md §7), so clients fall back.
+        let (t, d) = ctx.established.get().map_or((NO_TENANT, NO_TENANT), |e| {
+            (e.tenant.cfg.name.as_str(), e.db.name.as_str())
+        });
+        metrics.request(t, d, RequestOutcome::Invalid);
+        let e = ErrorMsg::new(
+            ErrorCode::UnknownMessage,
+            "LodRefsRequest (0x12) is turned off on this server",
+        );
+        reply_error(&mut send, 0, e).await;
+        return;
+    }
     let Some(est) = ctx.established.get() else {
         metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Unauthorized);
         reply_error(

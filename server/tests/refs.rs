@@ -207,6 +207,56 @@ async fn tables_of(conn: &Connection, file_size: u64, r: &ChildRef) -> Vec<Child
         .children
 }
 
+/// A server with child tables turned off answers 0x12 as one that predates
+/// it (id 0, `unknown_message`; docs/PROTOCOL.md §7): the session asks
+/// again with `LodRequest`, every request in flight and every later one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_without_child_tables_gets_plain_requests() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, _) = two_tenant_config(dir.path());
+    cfg.child_tables = false;
+    write_three_level_db(&dir.path().join("earth.planetdb"));
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let roots = header.elevation.root_records;
+    assert!(!conn.child_tables_refused());
+    // Six refs requests in flight when the first refusal comes back.
+    let asked: Vec<_> = roots
+        .iter()
+        .enumerate()
+        .map(|(i, r)| conn.fetch_refs(10 + i as u64, r.offset, r.size))
+        .collect();
+    for (f, r) in asked.into_iter().zip(&roots) {
+        let got = f.await.unwrap();
+        let record = conn.fetch(99, r.offset, r.size).await.unwrap();
+        assert_eq!(got, record, "the record alone");
+    }
+    assert!(conn.child_tables_refused());
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 12.0
+    })
+    .await;
+    let refused = metric(&text, "planet_requests_total", &[("outcome", "invalid")]);
+    assert!((1.0..=6.0).contains(&refused), "{refused}");
+    // Later requests go out as LodRequest straight away.
+    let got = conn
+        .fetch_refs(50, roots[0].offset, roots[0].size)
+        .await
+        .unwrap();
+    assert_eq!(got.len(), roots[0].size as usize);
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 13.0
+    })
+    .await;
+    assert_eq!(
+        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
+        refused
+    );
+    conn.close();
+    h.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bytes_sent_count_the_trailer() {
     let dir = tempfile::tempdir().unwrap();

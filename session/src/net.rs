@@ -15,6 +15,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -238,6 +239,10 @@ struct Inner {
     fetch_timeout: Option<Duration>,
     zero_rtt: bool,
     zero_rtt_refused: bool,
+    // The server answered a `LodRefsRequest` as an unknown frame: it
+    // predates 0x12 or has it turned off. Every request is a `LodRequest`
+    // from then on.
+    refs_refused: AtomicBool,
 }
 
 impl Drop for Inner {
@@ -389,6 +394,7 @@ impl Connection {
             fetch_timeout: opts.fetch_timeout,
             zero_rtt,
             zero_rtt_refused: refused,
+            refs_refused: AtomicBool::new(false),
         };
         Ok((
             Connection {
@@ -414,6 +420,14 @@ impl Connection {
     /// `Hello` was sent again after the handshake.
     pub fn zero_rtt_refused(&self) -> bool {
         self.inner.zero_rtt_refused
+    }
+
+    /// True if the server answered a `LodRefsRequest` as an unknown frame
+    /// (it predates 0x12, or its operator turned child tables off:
+    /// docs/PROTOCOL.md §7). [`Connection::fetch_refs`] then sends a
+    /// `LodRequest` and returns the record alone.
+    pub fn child_tables_refused(&self) -> bool {
+        self.inner.refs_refused.load(Ordering::Relaxed)
     }
 
     /// The server's address.
@@ -474,13 +488,24 @@ impl Connection {
     /// the future cancels the request, and the request takes its place in
     /// the connection's order when this is called, as for
     /// [`Connection::fetch`].
+    ///
+    /// A server that does not answer 0x12 (it predates it, or has it turned
+    /// off) answers with an error head of id 0 (§7): the request is then
+    /// made again as a `LodRequest`, and so is every later one on this
+    /// connection ([`Connection::child_tables_refused`]); the result is the
+    /// record alone, as from a transport without child tables.
     pub fn fetch_refs(
         &self,
         id: u64,
         offset: u64,
         size: u32,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
-        self.fetch_kind(id, offset, size, RequestKind::RecordAndRefs)
+        let kind = if self.child_tables_refused() {
+            RequestKind::Record
+        } else {
+            RequestKind::RecordAndRefs
+        };
+        self.fetch_kind(id, offset, size, kind)
     }
 
     fn fetch_kind(
@@ -492,21 +517,21 @@ impl Connection {
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
         let req = LodRequest { id, offset, size };
         // Queued now, in call order.
-        let opened = req
-            .encode_frame_as(kind)
-            .map_err(NetError::from)
-            .and_then(|frame| {
-                let (reply, opened) = oneshot::channel();
-                self.inner
-                    .opener
-                    .send(Open { frame, reply })
-                    .map_err(|_| closed_error())?;
-                Ok(opened)
-            });
+        let opened = self.enqueue(&req, kind);
         // The connection lives while one of its requests does.
         let this = self.clone();
         async move {
-            let fut = read_response(opened, req, kind);
+            let fut = async {
+                match read_response(opened, req, kind).await {
+                    Err(e) if kind == RequestKind::RecordAndRefs && refs_unknown(&e, req.id) => {
+                        this.inner.refs_refused.store(true, Ordering::Relaxed);
+                        tracing::debug!("server does not answer LodRefsRequest; using LodRequest");
+                        let again = this.enqueue(&req, RequestKind::Record);
+                        read_response(again, req, RequestKind::Record).await
+                    }
+                    r => r,
+                }
+            };
             let r = match this.inner.fetch_timeout {
                 Some(t) => tokio::time::timeout(t, fut)
                     .await
@@ -518,12 +543,40 @@ impl Connection {
         }
     }
 
+    /// Queues `req` as a request of `kind` for [`open_in_order`].
+    fn enqueue(
+        &self,
+        req: &LodRequest,
+        kind: RequestKind,
+    ) -> Result<oneshot::Receiver<Opened>, NetError> {
+        let frame = req.encode_frame_as(kind)?;
+        let (reply, opened) = oneshot::channel();
+        self.inner
+            .opener
+            .send(Open { frame, reply })
+            .map_err(|_| closed_error())?;
+        Ok(opened)
+    }
+
     /// Spawns [`Connection::fetch`] on the current tokio runtime and returns
     /// a handle that can cancel it.
     pub fn spawn_fetch(&self, id: u64, offset: u64, size: u32) -> FetchHandle {
         let fut = self.fetch(id, offset, size);
         let task = tokio::spawn(fut);
         FetchHandle { id, task }
+    }
+}
+
+/// Whether `e`, the answer to a well-formed `LodRefsRequest` of id `id`,
+/// says the server does not know 0x12: an error head with id 0 (a server
+/// answers id 0 only to a request stream it cannot decode, §5.2), which the
+/// response decoder reports as an id mismatch, or `unknown_message` itself
+/// when the request's id was 0.
+fn refs_unknown(e: &NetError, id: u64) -> bool {
+    match e {
+        NetError::Protocol(ProtocolError::ResponseIdMismatch { got: 0, .. }) => true,
+        NetError::Server(m) => id == 0 && m.code == ErrorCode::UnknownMessage,
+        _ => false,
     }
 }
 
