@@ -805,8 +805,13 @@ async fn serve_request(
     // Per-tenant requests, then bandwidth: pace modest excess, refuse long
     // waits. A refs request reserves its largest response, the record plus
     // `MAX_REFS_TRAILER_LEN` (its trailer is not known before the children
-    // are read, after pacing); the unused part is not refunded.
+    // are read, after pacing); what is not sent is refunded.
     let reserved = size + u64::from(kind.max_trailer_len());
+    let refund = |bytes: u64| {
+        if let Some(b) = &est.tenant.bucket {
+            b.refund(bytes);
+        }
+    };
     let buckets = [
         (&est.tenant.requests, 1, "request"),
         (&est.tenant.bucket, reserved, "bandwidth"),
@@ -848,6 +853,7 @@ async fn serve_request(
         .map(|mut c| c.remove(&req.id))
         .unwrap_or(false);
     if was_cancelled {
+        refund(reserved);
         let _ = send.reset(code(quic::STREAM_CANCELLED));
         metrics.request(tenant, dbname, RequestOutcome::Cancelled);
         return;
@@ -856,12 +862,14 @@ async fn serve_request(
     let body = match est.db.read(req.offset, req.size as usize) {
         Ok(b) => b,
         Err(e) => {
+            refund(reserved);
             let e = fail(storage_error(&ctx, &est.db, req.offset, &e));
             reply_error(&mut send, req.id, e).await;
             return;
         }
     };
     if !record_checksum_ok(&body) {
+        refund(reserved);
         let alert = ctx.shared.record_alerts.note(dbname, req.offset);
         if alert.first {
             metrics
@@ -886,6 +894,7 @@ async fn serve_request(
         RequestKind::Record => Vec::new(),
         RequestKind::RecordAndRefs => child_tables(est, &body, ctx.shared.cfg.max_record_size),
     };
+    refund(reserved.saturating_sub(size + trailer.len() as u64));
     // `trailer.len() <= MAX_REFS_TRAILER_LEN` and `size <= max_record_size`.
     let body_len = u32::try_from(trailer.len())
         .ok()

@@ -257,6 +257,47 @@ async fn a_server_without_child_tables_gets_plain_requests() {
     h.shutdown().await;
 }
 
+/// A refs request reserves its largest response in the tenant's bandwidth
+/// bucket and gets back what its trailer did not use: with no wait
+/// allowed, leaves asked with `LodRefsRequest` (empty trailers) pass as
+/// long as their records fit, not their reservations.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_unused_trailer_is_refunded_to_the_bandwidth_bucket() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, _) = two_tenant_config(dir.path());
+    write_three_level_db(&dir.path().join("earth.planetdb"));
+    cfg.max_rate_wait = Duration::ZERO;
+    cfg.tenants[0].max_bytes_per_second = 2 * u64::from(MAX_REFS_TRAILER_LEN);
+    let h = Server::start(cfg).await.unwrap();
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    // A grandchild: a leaf, whose trailer is empty.
+    let root = header.elevation.root_records[0];
+    let child = conn.fetch(1, root.offset, root.size).await;
+    let child = parse_record(&child.unwrap(), Some(welcome.file_size))
+        .unwrap()
+        .header
+        .children[0];
+    let leaf = tables_of(&conn, welcome.file_size, &child).await[0];
+    // Wait for the bucket to refill (2 * 388 bytes a second).
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    // A full bucket holds 776 bytes: two reservations of size + 388 fit
+    // and a third does not, unless each gets its unused 388 back; then the
+    // n-th still fits while n * size <= 388.
+    let n = (MAX_REFS_TRAILER_LEN / leaf.size).min(6) as u64;
+    assert!(n >= 3, "leaf of {} bytes", leaf.size);
+    for id in 10..10 + n {
+        let got = conn.fetch_refs(id, leaf.offset, leaf.size).await;
+        assert_eq!(
+            got.map(|b| b.len()).ok(),
+            Some(leaf.size as usize),
+            "request {id}"
+        );
+    }
+    conn.close();
+    h.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bytes_sent_count_the_trailer() {
     let dir = tempfile::tempdir().unwrap();
