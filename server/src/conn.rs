@@ -15,8 +15,8 @@ use futures_util::FutureExt;
 use planet_core::format::{child_tables_for, record_checksum_ok, ChildRef, SUPERBLOCK_LEN};
 use planet_protocol::{
     decode_any_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight,
-    Limits, LodRequest, RequestKind, ResponseHead, ServerEvent, ServerSession, Welcome,
-    LOD_REQUEST_FRAME_LEN,
+    Limits, LodRequest, MessageType, ProtocolError, RequestKind, ResponseHead, ServerEvent,
+    ServerSession, Welcome, LOD_REQUEST_FRAME_LEN,
 };
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
@@ -723,8 +723,19 @@ async fn serve_request(
         }
     };
     // A `LodRequest` or a `LodRefsRequest`: the same body, the same checks;
-    // the latter's response adds the children's child tables.
-    let (req, kind) = match decode_any_request_stream(&bytes) {
+    // the latter's response adds the children's child tables. With child
+    // tables turned off, 0x12 is an unknown frame, as on a server that
+    // predates it (id 0; docs/PROTOCOL.md §7), so clients fall back.
+    let decoded = decode_any_request_stream(&bytes).and_then(|(req, kind)| {
+        if kind == RequestKind::RecordAndRefs && !ctx.shared.cfg.child_tables {
+            Err(ProtocolError::UnknownMessageType(
+                MessageType::LodRefsRequest as u8,
+            ))
+        } else {
+            Ok((req, kind))
+        }
+    });
+    let (req, kind) = match decoded {
         Ok(r) => r,
         Err(e) => {
             let (t, d) = ctx.established.get().map_or((NO_TENANT, NO_TENANT), |e| {
@@ -735,20 +746,6 @@ async fn serve_request(
             return;
         }
     };
-    if kind == RequestKind::RecordAndRefs && !ctx.shared.cfg.child_tables {
-        // Turned off: answered as by a server that predates 0x12 (an
-        // unknown frame, id 0; docs/PROTOCOL.md §7), so clients fall back.
-        let (t, d) = ctx.established.get().map_or((NO_TENANT, NO_TENANT), |e| {
-            (e.tenant.cfg.name.as_str(), e.db.name.as_str())
-        });
-        metrics.request(t, d, RequestOutcome::Invalid);
-        let e = ErrorMsg::new(
-            ErrorCode::UnknownMessage,
-            "LodRefsRequest (0x12) is turned off on this server",
-        );
-        reply_error(&mut send, 0, e).await;
-        return;
-    }
     let Some(est) = ctx.established.get() else {
         metrics.request(NO_TENANT, NO_TENANT, RequestOutcome::Unauthorized);
         reply_error(
@@ -808,7 +805,7 @@ async fn serve_request(
     // are read, after pacing); what is not sent is refunded.
     let reserved = size + u64::from(kind.max_trailer_len());
     let refund = |bytes: u64| {
-        if let Some(b) = &est.tenant.bucket {
+        if let Some(b) = est.tenant.bucket.as_ref().filter(|_| bytes > 0) {
             b.refund(bytes);
         }
     };

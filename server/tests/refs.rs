@@ -15,7 +15,7 @@ use planet_core::format::{
 };
 use planet_core::{BlockId, Datum, Face};
 use planet_protocol::{ErrorCode, MAX_REFS_TRAILER_LEN};
-use planet_server::Server;
+use planet_server::{Server, ServerConfig};
 use planet_session::net::{Connection, NetError, NetEvent, Session, SessionConfig};
 
 /// Writes a three-level database over `path`: per face a root with four
@@ -88,7 +88,17 @@ fn write_three_level_db(path: &Path) -> Vec<u64> {
 /// A server whose database `earth` is [`write_three_level_db`]; `corrupt`
 /// flips a byte in every face's child 0 record first.
 async fn three_level_server(dir: &Path, corrupt: bool) -> planet_server::ServerHandle {
-    let (cfg, _) = two_tenant_config(dir);
+    three_level_server_with(dir, corrupt, |_| {}).await
+}
+
+/// [`three_level_server`] with its configuration changed by `tweak`.
+async fn three_level_server_with(
+    dir: &Path,
+    corrupt: bool,
+    tweak: impl FnOnce(&mut ServerConfig),
+) -> planet_server::ServerHandle {
+    let (mut cfg, _) = two_tenant_config(dir);
+    tweak(&mut cfg);
     let earth = dir.join("earth.planetdb");
     let corrupt_at = write_three_level_db(&earth);
     if corrupt {
@@ -213,10 +223,7 @@ async fn tables_of(conn: &Connection, file_size: u64, r: &ChildRef) -> Vec<Child
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_server_without_child_tables_gets_plain_requests() {
     let dir = tempfile::tempdir().unwrap();
-    let (mut cfg, _) = two_tenant_config(dir.path());
-    cfg.child_tables = false;
-    write_three_level_db(&dir.path().join("earth.planetdb"));
-    let h = Server::start(cfg).await.unwrap();
+    let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
     let (conn, welcome) = connect(&h, acme()).await.unwrap();
     let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
     let roots = header.elevation.root_records;
@@ -264,11 +271,11 @@ async fn a_server_without_child_tables_gets_plain_requests() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_unused_trailer_is_refunded_to_the_bandwidth_bucket() {
     let dir = tempfile::tempdir().unwrap();
-    let (mut cfg, _) = two_tenant_config(dir.path());
-    write_three_level_db(&dir.path().join("earth.planetdb"));
-    cfg.max_rate_wait = Duration::ZERO;
-    cfg.tenants[0].max_bytes_per_second = 2 * u64::from(MAX_REFS_TRAILER_LEN);
-    let h = Server::start(cfg).await.unwrap();
+    let h = three_level_server_with(dir.path(), false, |cfg| {
+        cfg.max_rate_wait = Duration::ZERO;
+        cfg.tenants[0].max_bytes_per_second = 2 * u64::from(MAX_REFS_TRAILER_LEN);
+    })
+    .await;
     let (conn, welcome) = connect(&h, acme()).await.unwrap();
     let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
     // A grandchild: a leaf, whose trailer is empty.
