@@ -11,6 +11,8 @@
 //!   block or a point.
 //! - [`source`]: the elevation stack (finest covering source, void filling)
 //!   and colour source, re-projected per block (thesis §5.2, Eq. 5.1).
+//! - [`amplify`]: procedural detail beyond the sources in regions
+//!   (thesis §6.2.2).
 //! - [`plan`]: the tree shape, depth by region, graded (thesis §4.3.3).
 //! - [`build`](mod@build): the bottom-up, depth-first, linear build (thesis Alg. 5.2).
 //! - [`procedural`]: the procedural planet and [`build_procedural`].
@@ -20,6 +22,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod amplify;
 pub mod build;
 pub mod builtin;
 pub mod crs;
@@ -65,6 +68,11 @@ pub struct RasterOptions {
     pub vertical: Vec<geoid::VerticalDatum>,
     /// Record codecs.
     pub codecs: CodecOptions,
+    /// Regions built deeper than the sources, with procedural detail
+    /// beyond them ([`amplify`]; empty: the sources' depth).
+    pub detail: Vec<DetailRegion>,
+    /// Seed of the detail's noise.
+    pub seed: u64,
 }
 
 impl Default for RasterOptions {
@@ -76,6 +84,8 @@ impl Default for RasterOptions {
             quiet: true,
             vertical: Vec::new(),
             codecs: CodecOptions::default(),
+            detail: Vec::new(),
+            seed: 1,
         }
     }
 }
@@ -133,6 +143,7 @@ pub fn open_rasters_noting(
             .chain(colour.as_ref().map(|c| &c.tiff)),
     )?
     .unwrap_or(planet_core::Datum::WGS84);
+    let amplify = amplifier(&stack, &datum, opts)?;
     let plan = match (&colour, stack.layers.is_empty()) {
         // Colour alone: a zero elevation tree as deep as the colour needs
         // where the colour raster lies (colour blocks exist only where
@@ -153,7 +164,19 @@ pub fn open_rasters_noting(
         _ => {
             let max_elev = stack.layers.iter().map(|l| l.level).max().unwrap_or(0);
             let colour_level = colour.as_ref().map(|c| c.level.min(max_elev));
-            plan::plan_for_sources(&stack, colour_level, opts.max_level)
+            match &amplify {
+                None => plan::plan_for_sources(&stack, colour_level, opts.max_level),
+                Some(a) => plan::plan_by(
+                    |b| {
+                        a.caps()
+                            .iter()
+                            .filter(|c| plan::block_meets_cap(b, c))
+                            .map(|c| c.level)
+                            .fold(stack.level_needed(b).min(opts.max_level), u8::max)
+                    },
+                    colour_level,
+                ),
+            }
         }
     };
     Ok((
@@ -162,9 +185,42 @@ pub fn open_rasters_noting(
             colour,
             scale: 1.0,
             datum,
+            amplify,
         },
         plan,
     ))
+}
+
+/// The detail of `opts.detail` over the stack: regions must be deeper than
+/// the finest elevation source and no deeper than `max_level`.
+fn amplifier(
+    stack: &source::ElevationStack,
+    datum: &planet_core::Datum,
+    opts: &RasterOptions,
+) -> Result<Option<amplify::Amplifier>, BuildError> {
+    if opts.detail.is_empty() {
+        return Ok(None);
+    }
+    let Some(finest) = stack.layers.iter().map(|l| l.level).max() else {
+        return Err(BuildError::Options(
+            "--detail adds detail to elevation sources: give --elevation FILE...".into(),
+        ));
+    };
+    for r in &opts.detail {
+        if r.level <= finest || r.level > opts.max_level {
+            return Err(BuildError::Options(format!(
+                "--detail {r}: LEVEL {} must be deeper than the finest elevation source \
+                 (level {finest}) and at most --max-level {}",
+                r.level, opts.max_level
+            )));
+        }
+    }
+    Ok(Some(amplify::Amplifier::new(
+        opts.seed,
+        opts.detail.iter().map(|r| r.cap(datum)).collect(),
+        finest,
+        datum.equatorial_radius(),
+    )))
 }
 
 /// [`open_rasters_noting`] with the notes dropped.

@@ -43,16 +43,20 @@ enum Cmd {
         /// Build a procedural planet instead.
         #[arg(long, conflicts_with_all = ["elevation", "colour"])]
         procedural: bool,
-        /// Procedural seed.
+        /// Procedural seed (also the seed of --detail's noise on rasters).
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// Procedural uniform leaf level (the base level).
         #[arg(long, default_value_t = 4)]
         levels: u8,
-        /// Procedural detail region, repeatable: a circle of RADIUS_KM around
-        /// LAT,LON (degrees) built down to leaf LEVEL (>= --levels, <= 20),
-        /// graded outside it; colour follows the elevation to LEVEL inside
-        /// the region and stays at --levels outside it.
+        /// Detail region, repeatable: a circle of RADIUS_KM around LAT,LON
+        /// (degrees) built down to leaf LEVEL, graded outside it.
+        /// Procedural: LEVEL >= --levels, <= 20; colour follows the
+        /// elevation to LEVEL inside the region and stays at --levels
+        /// outside it. Rasters: LEVEL deeper than the finest elevation
+        /// source and <= --max-level; fractal detail beyond the sources,
+        /// scaled by their local slope, is added inside the region (thesis
+        /// §6.2.2); colour stays at its source's level.
         #[arg(
             long,
             value_name = "LAT,LON,RADIUS_KM,LEVEL",
@@ -121,13 +125,14 @@ enum Cmd {
         /// and --detail).
         #[arg(long, conflicts_with_all = ["elevation", "colour"])]
         procedural: bool,
-        /// Procedural seed.
+        /// Procedural seed (also the seed of --detail's noise on rasters).
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// Procedural uniform leaf level.
         #[arg(long, default_value_t = 4)]
         levels: u8,
-        /// Procedural detail regions.
+        /// Detail regions the database was built with (procedural or
+        /// rasters).
         #[arg(
             long,
             value_name = "LAT,LON,RADIUS_KM,LEVEL",
@@ -234,11 +239,6 @@ fn run() -> Result<()> {
                 },
                 colour: colour_quality,
             };
-            if !procedural && !detail.is_empty() {
-                bail!(
-                    "--detail needs --procedural (raster trees follow their sources' resolution)"
-                );
-            }
             let stats = if procedural {
                 let datum = match radius {
                     Some(r) => Datum::Sphere { radius: r },
@@ -287,6 +287,8 @@ fn run() -> Result<()> {
                         quiet,
                         vertical: vertical_datum,
                         codecs,
+                        detail,
+                        seed,
                     },
                     &mut |n| eprintln!("note: {n}"),
                 )
@@ -376,6 +378,8 @@ fn run() -> Result<()> {
                     colour.as_deref(),
                     &RasterOptions {
                         max_level,
+                        detail,
+                        seed,
                         ..RasterOptions::default()
                     },
                 )?;

@@ -244,7 +244,7 @@ pub struct Procedural {
 
 const LATTICE: usize = 8;
 const HIGH_OCTAVES: u32 = 3;
-const DETAIL_F0: f64 = 4.0;
+pub(crate) const DETAIL_F0: f64 = 4.0;
 /// Amplitude ratio per octave of the rough octaves (fBm's is 0.5): the
 /// amplitude ∝ wavelength^0.62, so slopes grow by 1.3 per finer octave.
 pub const ROUGH_RATIO: f64 = 0.65;
@@ -256,7 +256,7 @@ const ROUGH_A10: f64 = 120.0;
 
 /// Number of detail octaves at a leaf level: the finest has a wavelength of
 /// about two samples.
-fn octaves_at(level: u8) -> u32 {
+pub(crate) fn octaves_at(level: u8) -> u32 {
     // Sample spacing at the leaves, in radians; finest octave ≈ 2 samples.
     let d = std::f64::consts::FRAC_PI_2 / (EW as f64 * 2f64.powi(level as i32));
     let fmax = 1.0 / (2.0 * d);
@@ -370,9 +370,7 @@ impl Procedural {
     /// base lattice before, whose points are 8 base samples apart, about
     /// 39 km at 4 levels: regions narrower than that had no rough detail).
     fn rough_mask(&self, caps: &[Cap], p: [f64; 3]) -> f64 {
-        caps.iter()
-            .map(|c| 1.0 - smoothstep(0.5 * c.radius, c.radius, angle_between(p, c.centre)))
-            .fold(0.0, f64::max)
+        region_mask(caps, p)
     }
 
     /// The rough per-sample octaves (from the first octave the base planet
@@ -837,6 +835,18 @@ fn smoothstep(a: f64, b: f64, x: f64) -> f64 {
     t * t * (3.0 - 2.0 * t)
 }
 
+/// Where detail below a region's base applies: 1 within half the radius of
+/// any of `caps`, fading smoothly (smoothstep) to exactly 0 at its radius;
+/// the largest over the caps. A function of the direction alone, so samples
+/// with bit-identical directions agree whatever block computes them. Used by
+/// the procedural planet's rough octaves and by the detail added to rasters
+/// ([`crate::amplify`]).
+pub(crate) fn region_mask(caps: &[Cap], p: [f64; 3]) -> f64 {
+    caps.iter()
+        .map(|c| 1.0 - smoothstep(0.5 * c.radius, c.radius, angle_between(p, c.centre)))
+        .fold(0.0, f64::max)
+}
+
 #[inline]
 fn hash(seed: u64, x: i64, y: i64, z: i64) -> u64 {
     let mut h = seed
@@ -948,7 +958,7 @@ pub fn noise(seed: u64, p: [f64; 3]) -> f64 {
 }
 
 /// Samples in a row of a leaf's elevation grid.
-const ROW: usize = EW + 1;
+pub(crate) const ROW: usize = EW + 1;
 
 /// One per-sample detail octave: 3D gradient noise of the direction scaled
 /// by `f`, times the amplitude, evaluated a row of samples at a time in three
@@ -967,7 +977,7 @@ const ROW: usize = EW + 1;
 /// Every step is a function of the sample's direction alone, so samples with
 /// bit-identical directions (shared block and face edges) agree exactly.
 #[derive(Debug, Clone)]
-struct DetailOctave {
+pub(crate) struct DetailOctave {
     seed: u32,
     f: f64,
     amp: f32,
@@ -976,7 +986,7 @@ struct DetailOctave {
 }
 
 impl DetailOctave {
-    fn new(seed: u64, f: f64, a: f64) -> DetailOctave {
+    pub(crate) fn new(seed: u64, f: f64, a: f64) -> DetailOctave {
         let mut o = DetailOctave {
             seed: fold_seed(seed),
             f,
@@ -1016,7 +1026,13 @@ impl DetailOctave {
     }
 
     /// Add `amplitude · noise(f·p)` of the row's directions to `acc`.
-    fn add_row(&mut self, px: &[f64; ROW], py: &[f64; ROW], pz: &[f64; ROW], acc: &mut [f32; ROW]) {
+    pub(crate) fn add_row(
+        &mut self,
+        px: &[f64; ROW],
+        py: &[f64; ROW],
+        pz: &[f64; ROW],
+        acc: &mut [f32; ROW],
+    ) {
         let f = self.f;
         let mut cx = [0i32; ROW];
         let mut cy = [0i32; ROW];

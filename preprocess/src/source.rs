@@ -1004,6 +1004,8 @@ pub struct RasterSource {
     pub scale: f64,
     /// The surface the rasters lie on.
     pub datum: Datum,
+    /// Procedural detail beyond the sources in regions (`--detail`).
+    pub amplify: Option<crate::amplify::Amplifier>,
 }
 
 /// The description token naming the vertical datum the elevation sources
@@ -1036,6 +1038,9 @@ impl GridSource for RasterSource {
         self.elevation
             .reader()
             .sample_grid(&near, &mut pts, w + 1, w + 1, &mut m)?;
+        if let Some(a) = &self.amplify {
+            a.add(&self.elevation, b, &mut m)?;
+        }
         for (o, v) in out.iter_mut().zip(&m) {
             *o = quantise(*v, self.scale);
         }
@@ -1102,6 +1107,14 @@ impl GridSource for RasterSource {
                 c.tiff.path().display(),
                 c.tiff.crs.name,
                 c.level
+            ));
+        }
+        if let Some(a) = &self.amplify {
+            s.push_str(&format!(
+                "; procedural detail beyond L{} in {} region(s) to L{}",
+                a.source_level(),
+                a.caps().len(),
+                a.caps().iter().map(|c| c.level).max().unwrap_or(0)
             ));
         }
         // One vertical datum for the whole database where the sources
