@@ -36,16 +36,29 @@ fn write_half_slope(path: &Path) {
             (500.0 + rise).round() as i16
         })
         .collect();
+    write_geographic(path, W, W, PX, (10.0, 46.0), &data);
+}
+
+/// Writes an int16 geographic (WGS84, pixel-is-area) raster of `w × h`
+/// pixels of `px` degrees, its upper-left corner at (`lon`, `lat`).
+fn write_geographic(
+    path: &Path,
+    w: usize,
+    h: usize,
+    px: f64,
+    (lon, lat): (f64, f64),
+    data: &[i16],
+) {
     let mut enc = TiffEncoder::new(File::create(path).unwrap()).unwrap();
     let mut img = enc
-        .new_image::<colortype::GrayI16>(W as u32, W as u32)
+        .new_image::<colortype::GrayI16>(w as u32, h as u32)
         .unwrap();
     let d = img.encoder();
-    d.write_tag(Tag::ModelPixelScaleTag, &[PX, PX, 0.0][..])
+    d.write_tag(Tag::ModelPixelScaleTag, &[px, px, 0.0][..])
         .unwrap();
     d.write_tag(
         Tag::ModelTiepointTag,
-        &[0.0f64, 0.0, 0.0, 10.0, 46.0, 0.0][..],
+        &[0.0f64, 0.0, 0.0, lon, lat, 0.0][..],
     )
     .unwrap();
     // Geographic model, pixel-is-area.
@@ -54,7 +67,7 @@ fn write_half_slope(path: &Path) {
         &[1u16, 1, 0, 2, 1024, 0, 1, 2, 1025, 0, 1, 1][..],
     )
     .unwrap();
-    img.write_data(&data).unwrap();
+    img.write_data(data).unwrap();
 }
 
 fn region(lat: f64, lon: f64, km: f64, level: u8) -> DetailRegion {
@@ -219,22 +232,7 @@ fn write_global(path: &Path) {
             ((c * 37 + r * 91) % 17) as i16 * 300
         })
         .collect();
-    let mut enc = TiffEncoder::new(File::create(path).unwrap()).unwrap();
-    let mut img = enc.new_image::<colortype::GrayI16>(36, 18).unwrap();
-    let d = img.encoder();
-    d.write_tag(Tag::ModelPixelScaleTag, &[10.0f64, 10.0, 0.0][..])
-        .unwrap();
-    d.write_tag(
-        Tag::ModelTiepointTag,
-        &[0.0f64, 0.0, 0.0, -180.0, 90.0, 0.0][..],
-    )
-    .unwrap();
-    d.write_tag(
-        Tag::GeoKeyDirectoryTag,
-        &[1u16, 1, 0, 2, 1024, 0, 1, 2, 1025, 0, 1, 1][..],
-    )
-    .unwrap();
-    img.write_data(&data).unwrap();
+    write_geographic(path, 36, 18, 10.0, (-180.0, 90.0), &data);
 }
 
 /// The direction of sample (i, j) of a block's grid, with the builder's
