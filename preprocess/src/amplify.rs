@@ -1,5 +1,5 @@
 //! Procedural detail beyond the best available data (thesis §6.2.2, future
-//! work "procedural detail"; thesis-notes §12 item 5).
+//! work "procedural detail").
 //!
 //! `planet-build build --elevation ... --detail LAT,LON,RADIUS_KM,LEVEL`
 //! deepens the tree inside the region below the finest source's level (the
