@@ -39,7 +39,7 @@ use crate::geotiff::GridPoints;
 use crate::plan::Cap;
 use crate::procedural::{octaves_at, region_mask, DetailOctave, DETAIL_F0, ROUGH_RATIO, ROW};
 use crate::source::ElevationStack;
-use planet_core::cube::{angle_between, normalize, plane_from_angle, sample_coord};
+use planet_core::cube::{angle_between, normalize};
 use planet_core::{BlockId, Edge};
 
 /// Amplitude of the first detail octave per unit slope, in wavelengths:
@@ -111,23 +111,34 @@ impl Amplifier {
     }
 
     /// Add the detail to leaf `b`'s full `(EW+1)²` grid of heights `m`
-    /// (metres, the sources' interpolation at the grid's directions).
-    /// Leaves at or above the source level, and leaves no region meets, are
-    /// left as they are.
-    pub fn add(&self, stack: &ElevationStack, b: BlockId, m: &mut [f64]) -> Result<(), GeoError> {
+    /// (metres: the sources, layers `near` of the stack, interpolated at the
+    /// grid's points `pts`). Leaves at or above the source level, and leaves
+    /// no region meets, are left as they are.
+    pub fn add(
+        &self,
+        stack: &ElevationStack,
+        b: BlockId,
+        pts: &GridPoints<'_>,
+        near: &[usize],
+        m: &mut [f64],
+    ) -> Result<(), GeoError> {
         let side = EW + 1;
         debug_assert_eq!(m.len(), side * side);
+        debug_assert_eq!(pts.len(), side * side);
         let caps: Vec<Cap> = self
             .caps
             .iter()
             .filter(|c| crate::plan::block_meets_cap(b, c))
             .copied()
             .collect();
-        let mut octaves = self.octaves(b.level);
-        if caps.is_empty() || octaves.is_empty() {
+        if caps.is_empty() {
             return Ok(());
         }
-        let dirs = grid_directions(b);
+        let mut octaves = self.octaves(b.level);
+        if octaves.is_empty() {
+            return Ok(());
+        }
+        let dirs: Vec<[f64; 3]> = (0..pts.len()).map(|k| pts.direction(k)).collect();
         // Forward differences to the east and north, one source sample
         // (angle `step`) away: a frame that is a function of the direction
         // alone (not of the face), so the slope, and the heights, agree
@@ -142,7 +153,7 @@ impl Amplifier {
         }
         // The shifted points lie up to one step beyond the block: the layers
         // near its neighbours too (stack order kept).
-        let mut layers = stack.layers_near(b);
+        let mut layers = near.to_vec();
         for e in [Edge::Left, Edge::Top, Edge::Right, Edge::Bottom] {
             layers.extend(stack.layers_near(b.neighbour(e).0));
         }
@@ -176,25 +187,6 @@ impl Amplifier {
         }
         Ok(())
     }
-}
-
-/// The unit directions of a leaf's `(EW+1)²` grid, row-major, with the
-/// arithmetic of the sources' sampling (`RasterSource::elevation_leaf`).
-fn grid_directions(b: BlockId) -> Vec<[f64; 3]> {
-    let n = (EW as u64) << b.level;
-    let axis = |o: u32| -> Vec<f64> {
-        (0..=EW as u64)
-            .map(|i| plane_from_angle(sample_coord(o as u64 * EW as u64 + i, n)))
-            .collect()
-    };
-    let (us, vs) = (axis(b.x), axis(b.y));
-    let mut out = Vec::with_capacity(us.len() * vs.len());
-    for &v in &vs {
-        for &u in &us {
-            out.push(normalize(b.face.cube_point(u, v)));
-        }
-    }
-    out
 }
 
 /// Unit east and north tangents at unit direction `p` (the planet's axis

@@ -1039,7 +1039,7 @@ impl GridSource for RasterSource {
             .reader()
             .sample_grid(&near, &mut pts, w + 1, w + 1, &mut m)?;
         if let Some(a) = &self.amplify {
-            a.add(&self.elevation, b, &mut m)?;
+            a.add(&self.elevation, b, &pts, &near, &mut m)?;
         }
         for (o, v) in out.iter_mut().zip(&m) {
             *o = quantise(*v, self.scale);
