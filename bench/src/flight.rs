@@ -35,6 +35,16 @@
 //! view's deepest record is a chain of round trips, two levels each at
 //! most with the child tables of `LodRefsRequest`).
 //!
+//! The stops' times (`time_to_1px_after_stops_s`) measure the geometry, as
+//! the issue defines them. Colour is the other half of what is drawn, and
+//! policies order the two trees differently (`ours` weighs a colour
+//! record's texels as screen displacement and may load a coarse colour
+//! before a near-tolerance elevation record): each frame also records the
+//! largest projected texel of the drawn colour (`colour_texel_max_px`,
+//! [`Client::colour_screen_error`], 0 where it is at its finest data), and
+//! `time_to_1px_with_colour_after_stops_s` is the time until geometry and
+//! colour are both within the tolerance.
+//!
 //! `--transport` (repeatable) adds the transport as a dimension: `quic`
 //! (planet-server in process, through the UDP relay) and `http2` (the same
 //! file served by nginx over HTTPS byte ranges, through the TCP link: kernel
@@ -208,6 +218,9 @@ pub struct Row {
     pub triangles: u64,
     pub qf: f64,
     pub sse_max: f64,
+    /// Largest projected texel size of the drawn colour, px (0 where it is
+    /// at its finest data; [`planet_client::Client::colour_screen_error`]).
+    pub colour_max: f64,
     pub sse_mean: f64,
     pub sse_pixel_mean: f64,
     /// The instant replay's per-pixel mean SSE at this frame (NaN without
@@ -242,6 +255,11 @@ pub struct Summary {
     /// Per stop (static segment): its start and the time to max SSE ≤ the
     /// tolerance from it (`None`: not reached during the stop).
     pub stops: Vec<(f64, Option<f64>)>,
+    /// Per stop: the time until the colour meets the tolerance too (the
+    /// largest drawn texel at most the tolerance in pixels, or at its
+    /// finest data), `None` if not during the stop. At least the stop's
+    /// geometric time.
+    pub stops_with_colour: Vec<Option<f64>>,
     pub wasted_pct: f64,
     /// Of the wasted bytes, those dropped on arrival or rejected (the rest
     /// were applied and never drawn).
@@ -300,10 +318,12 @@ fn static_segments(t: &Trajectory) -> Vec<(f64, f64)> {
 }
 
 /// Seconds from `start` until max SSE ≤ `tol` px (within `[start, end]`).
-fn time_to_sse(rows: &[Row], start: f64, end: f64, tol: f64) -> Option<f64> {
+/// The time from `start` to the first row up to `end` whose max SSE is at
+/// most `tol` (and, `with_colour`, whose colour texels are too).
+fn time_to_sse(rows: &[Row], start: f64, end: f64, tol: f64, with_colour: bool) -> Option<f64> {
     rows.iter()
         .filter(|r| r.t >= start - 1e-9 && r.t <= end + 1e-9)
-        .find(|r| r.sse_max <= tol)
+        .find(|r| r.sse_max <= tol && (!with_colour || r.colour_max <= tol))
         .map(|r| r.t - start)
 }
 
@@ -332,6 +352,9 @@ struct JsonSummary<'a> {
     block_error_integral_px_s: f64,
     stops_s: Vec<f64>,
     time_to_1px_after_stops_s: Vec<Option<f64>>,
+    /// Per stop: the time until the drawn colour's texels are within the
+    /// tolerance as well (geometry and colour both converged).
+    time_to_1px_with_colour_after_stops_s: Vec<Option<f64>>,
     bytes: u64,
     link_bytes: u64,
     relevant_ratio: f64,
@@ -485,6 +508,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
             block_error_integral_px_s: s.block_error_integral,
             stops_s: s.stops.iter().map(|x| x.0).collect(),
             time_to_1px_after_stops_s: s.stops.iter().map(|x| x.1).collect(),
+            time_to_1px_with_colour_after_stops_s: s.stops_with_colour.clone(),
             bytes: s.bytes,
             link_bytes: s.link_bytes_down,
             relevant_ratio: s.relevant_pct / 100.0,
@@ -867,6 +891,7 @@ fn run_link(
             }
         }
         let bytes = sc.bytes_received();
+        let colour_max = sc.client.colour_screen_error(&camera, &out.draw);
         let st = &out.stats;
         rows.push(Row {
             frame: n,
@@ -881,6 +906,7 @@ fn run_link(
             triangles: st.triangles,
             qf: st.quality_factor,
             sse_max: st.max_screen_error,
+            colour_max,
             sse_mean: st.mean_screen_error,
             sse_pixel_mean: st.pixel_mean_screen_error,
             sse_pixel_floor: instant
@@ -947,10 +973,18 @@ fn run_link(
 
     let segs = static_segments(traj);
     let tol = a.max_sse;
-    let stops: Vec<(f64, Option<f64>)> = segs
+    let spans: Vec<(f64, f64)> = segs
         .iter()
         .filter(|s| s.0 < duration)
-        .map(|s| (s.0, time_to_sse(&rows, s.0, s.1.min(duration), tol)))
+        .map(|s| (s.0, s.1.min(duration)))
+        .collect();
+    let stops: Vec<(f64, Option<f64>)> = spans
+        .iter()
+        .map(|&(a, b)| (a, time_to_sse(&rows, a, b, tol, false)))
+        .collect();
+    let stops_with_colour: Vec<Option<f64>> = spans
+        .iter()
+        .map(|&(a, b)| time_to_sse(&rows, a, b, tol, true))
         .collect();
     let dt = 1.0 / a.fps;
     let error_integral: f64 = rows.iter().map(|r| r.sse_pixel_mean * dt).sum();
@@ -981,6 +1015,7 @@ fn run_link(
             max_sse_integral,
             block_error_integral,
             stops,
+            stops_with_colour,
             wasted_pct: 100.0 * totals.wasted_ratio(),
             dropped_pct: 100.0 * totals.dropped_ratio(),
             unused_tables_pct: 100.0 * totals.unused_tables_ratio(),
@@ -1029,12 +1064,12 @@ async fn warm_up(session: &SessionConfig) -> Result<()> {
 
 fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
     let mut s = String::from(
-        "frame,t_s,bytes_total,bytes_frame,in_flight,sent,cancelled,cancelled_total,blocks,triangles,quality_factor,sse_max_px,sse_mean_px,sse_pixel_mean_px,sse_pixel_floor_px,true_err_max_m,true_err_mean_m,probes,relevant_ratio,cpu_ms,nodes,connected\n",
+        "frame,t_s,bytes_total,bytes_frame,in_flight,sent,cancelled,cancelled_total,blocks,triangles,quality_factor,sse_max_px,colour_texel_max_px,sse_mean_px,sse_pixel_mean_px,sse_pixel_floor_px,true_err_max_m,true_err_mean_m,probes,relevant_ratio,cpu_ms,nodes,connected\n",
     );
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{:.4},{},{},{},{},{},{},{},{},{:.1},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{},{:.5},{:.4},{},{}",
+            "{},{:.4},{},{},{},{},{},{},{},{},{:.1},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{},{:.5},{:.4},{},{}",
             r.frame,
             r.t,
             r.bytes_total,
@@ -1047,6 +1082,7 @@ fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
             r.triangles,
             r.qf,
             r.sse_max,
+            r.colour_max,
             r.sse_mean,
             r.sse_pixel_mean,
             r.sse_pixel_floor,
@@ -1067,11 +1103,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | to tolerance after each stop (start's bound) | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped, unused tables) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | to tolerance after each stop (start's bound) | with colour | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped, unused tables) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
         let stops: Vec<String> = s
@@ -1082,9 +1118,14 @@ pub fn summary_table(ss: &[Summary]) -> String {
                 None => format!("{at:.0}s: —"),
             })
             .collect();
+        let with_colour: Vec<String> = s
+            .stops_with_colour
+            .iter()
+            .map(|x| x.map_or("—".into(), |v| format!("{v:.2}")))
+            .collect();
         let _ = writeln!(
             t,
-            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {}{} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %, {:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {}{} | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %, {:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
@@ -1100,6 +1141,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             stops.join(", "),
             s.start_bound_s
                 .map_or(String::new(), |b| format!(" (≥ {b:.2})")),
+            with_colour.join(", "),
             s.bytes as f64 / 1e6,
             s.link_bytes_down as f64 / 1e6,
             s.needed_over_delivered

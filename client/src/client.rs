@@ -437,6 +437,47 @@ impl Client {
         &self.tree
     }
 
+    /// The largest projected texel size in pixels of the colour drawn on
+    /// `draw` (a frame's draw list) seen from `camera`: 0 where every drawn
+    /// colour block is at its finest data or has no colour tree. The colour
+    /// counterpart of [`FrameStats::max_screen_error`], measured as the
+    /// colour refinement test measures it ([`Refiner::drawn_texel`]), with
+    /// the client's tolerance. For reports (`planet-bench flight`): it
+    /// measures every distinct colour block drawn, which the frame itself
+    /// does not need.
+    pub fn colour_screen_error(&self, camera: &Camera, draw: &[DrawBlock]) -> f64 {
+        let Some(ct) = self.tree.colour() else {
+            return 0.0;
+        };
+        let et = self.tree.elevation();
+        let view = View::new(camera, self.r_min, self.r_max);
+        let tol = sanitize_tolerance(self.config.max_sse_px);
+        let refiner = Refiner::new(Policy::Ours, &view, 1.0, tol);
+        let cw = ct.width as f64;
+        let mut seen: FastSet<BlockId> = FastSet::default();
+        let mut worst = 0.0f64;
+        for c in draw.iter().filter_map(|d| d.colour) {
+            if !seen.insert(c.block) {
+                continue;
+            }
+            let (Some(n), Some(b)) = (
+                ct.get(&c.block),
+                et.get(&c.block).and_then(|e| e.bounds.as_ref()),
+            ) else {
+                continue;
+            };
+            let m = refiner.measure(
+                Kind::Colour,
+                &Footprint::of(b),
+                cw,
+                n.record.error as f64,
+                n.child_error(),
+            );
+            worst = worst.max(refiner.drawn_texel(&m, c.lod));
+        }
+        worst
+    }
+
     /// The selection cache (e.g. its rebuild count).
     pub fn selector(&self) -> &Selector {
         &self.selector

@@ -623,6 +623,19 @@ impl Refiner {
     pub fn drawn_error(&self, m: &Measure, error: f64) -> f64 {
         self.sse.apply(error, m.scale).min(self.height)
     }
+
+    /// The projected texel size in pixels of a colour block drawn at
+    /// `lod`, from its [`Kind::Colour`] measure: its first LOD's texels
+    /// (`m.a`) or its own (`m.b`), 0 where no finer colour exists to load
+    /// (the measure's convention), capped at the viewport height as
+    /// [`Refiner::drawn_error`] is. The colour half of the rendered error,
+    /// which the colour refinement test holds to the tolerance. Meaningful
+    /// for the screen-space policies (not [`Policy::Thesis`], whose measure
+    /// is an importance).
+    pub fn drawn_texel(&self, m: &Measure, lod: u8) -> f64 {
+        let t = if lod == 0 { m.b } else { m.a };
+        t.min(self.height)
+    }
 }
 
 /// Level first, then nearest: `−(level·10¹³ + distance)`.

@@ -564,9 +564,12 @@ fn sse_refines_exactly_above_the_tolerance() {
         let mut sent = 0;
         let mut quiet = 0;
         let mut last = None;
+        let mut first_colour = None;
         for _ in 0..4000 {
             let r = c.refiner(&view);
             let out = c.frame(&cam, 1.0 / 60.0);
+            // The colour drawn from the header's roots alone.
+            first_colour.get_or_insert_with(|| c.colour_screen_error(&cam, &out.draw));
             for o in out.send.iter().filter(|o| !o.forced) {
                 let t = c.tree();
                 // A child of a block whose split this frame chose is asked
@@ -655,6 +658,19 @@ fn sse_refines_exactly_above_the_tolerance() {
                 d.screen_error
             );
         }
+        // The colour half of the rendered error (what `planet-bench
+        // flight` reports with the stops): coarser than the tolerance from
+        // the roots, within it once converged.
+        let first = first_colour.expect("frames");
+        let now = c.colour_screen_error(&cam, &out.draw);
+        assert!(
+            first > tol,
+            "roots' texels {first} px ≤ {tol} px at {alt} m"
+        );
+        assert!(
+            now <= tol,
+            "converged texels {now} px > {tol} px at {alt} m"
+        );
         c.tree().validate().expect("valid");
     }
 }
