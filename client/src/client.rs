@@ -11,6 +11,10 @@
 //!    frame never sees half a change;
 //! 2. update the quality factor from the previous frame's measurement;
 //! 3. traverse both trees ([`crate::selection`]) with the horizon-fitted view;
+//!    in a frame that applied a forced record (a coarse neighbour loaded so
+//!    that a visible block may split, thesis §4.3.3), a first traversal
+//!    executes the splits that record unblocks at once, so it is drawn in
+//!    the frame it arrives;
 //! 4. select load requests ([`crate::request_queue`]): new ones to send,
 //!    in-flight ones to cancel; select the split/merge operations for the
 //!    next frame start. With [`ClientConfig::eager_children`] the children
@@ -46,7 +50,7 @@ use crate::view_prediction::ViewPredictor;
 use crate::visibility::{Camera, View};
 use planet_core::codec::TreeCodec;
 use planet_core::format::{ChildRef, Header, Tree};
-use planet_core::BlockId;
+use planet_core::{BlockId, Edge};
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -860,6 +864,27 @@ impl Client {
         let view = View::new(camera, self.r_min, self.r_max);
         let tol = tolerance_for(&self.config, qf) * self.memory_factor;
         let refiner = Refiner::new(self.config.policy, &view, qf, tol);
+        // 3a. A forced record is a coarse neighbour's LOD 0, loaded so that
+        // a visible block may split (thesis §4.3.3). The splits it unblocks
+        // (the neighbour's own, then the block's) are executed in the frame
+        // the record is applied rather than the next: the neighbour is
+        // drawn at its new LOD on arrival (its bytes are relevant, not
+        // drawn a frame later) and the split comes a frame sooner. Frames
+        // without a forced record skip this pass.
+        let forced: Vec<(Tree, BlockId)> =
+            applied.iter().filter(|a| a.3).map(|a| (a.0, a.1)).collect();
+        if !forced.is_empty() {
+            let pre = self.selector.select(&self.tree, &view, &refiner);
+            for op in &pre.ops {
+                if op.kind == OpKind::Split
+                    && unblocked_by(&self.tree, op, &forced)
+                    && self.tree.split(op.tree, &op.block).is_ok()
+                {
+                    stats.splits += 1;
+                }
+            }
+            self.selector.recycle(pre.draw);
+        }
         let sel = self.selector.select(&self.tree, &view, &refiner);
         // 4. Requests.
         let tree = &self.tree;
@@ -1140,6 +1165,21 @@ impl Client {
 }
 
 /// The tolerance of `config` at quality factor `qf` ([`Client::tolerance`]).
+/// Whether `op` splits one of the `forced` blocks (a neighbour that must
+/// be at most the level difference coarser splits once its LOD 0 is
+/// there, and its record is drawn through its children) or a block that
+/// has one of them as an edge neighbour (the split their loads were for).
+fn unblocked_by(tree: &PartialTree, op: &TreeOp, forced: &[(Tree, BlockId)]) -> bool {
+    let Some(t) = tree.tree(op.tree) else {
+        return false;
+    };
+    forced.contains(&(op.tree, op.block))
+        || Edge::ALL.iter().any(|&e| {
+            t.neighbour(&op.block, e)
+                .is_some_and(|nb| forced.contains(&(op.tree, nb.id)))
+        })
+}
+
 fn tolerance_for(config: &ClientConfig, qf: f64) -> f64 {
     let tol = sanitize_tolerance(config.max_sse_px);
     match config.quality.mode {

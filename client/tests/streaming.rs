@@ -954,3 +954,52 @@ fn records_delivered_before_a_frame_are_applied_in_it() {
     }
     assert!(c.totals().refines_applied > 5);
 }
+
+/// A forced record (a coarse neighbour's LOD 0, loaded so that a visible
+/// block may split, thesis §4.3.3) is drawn in the frame it is applied:
+/// the splits it unblocks are executed in that frame, not the next, so its
+/// bytes count as relevant rather than drawn later. (Before, this view
+/// drew 292 bytes of forced records a frame late.) Forced records of
+/// neighbours that are not visible are never drawn, and stay counted apart.
+#[test]
+fn forced_neighbours_are_drawn_on_arrival() {
+    let db4 = TestDb::build(TestDbConfig {
+        elevation_width: 4,
+        elevation_max_level: 5,
+        colour: Some((8, 3)),
+        ..TestDbConfig::default()
+    });
+    let cfg = ClientConfig {
+        decode_threads: 0,
+        ..ClientConfig::for_policy(Policy::Ours, 1.0)
+    };
+    let mut c = Client::new(db4.header.clone(), cfg).expect("client");
+    let mut s = FakeServer::new(1);
+    let eye = DVec3::new(1.0, 0.02, 0.01).normalize() * (6_371_000.0 + 2_000.0);
+    let cam = Camera::look_at(
+        eye,
+        DVec3::new(1.0, -0.2, 0.05).normalize() * 6_371_000.0,
+        eye.normalize(),
+    );
+    let mut forced_bytes = 0u64;
+    for _ in 0..300 {
+        let out = c.frame(&cam, 1.0 / 60.0);
+        forced_bytes += out
+            .send
+            .iter()
+            .filter(|o| o.forced)
+            .map(|o| u64::from(o.record.size))
+            .sum::<u64>();
+        s.submit(&out);
+        for (id, bytes) in s.tick(&db4) {
+            c.deliver(id, Ok(bytes));
+        }
+        c.tree().validate().expect("valid");
+    }
+    let t = c.totals();
+    assert_eq!(t.bytes_drawn_later, 0, "{t:?}");
+    assert!(
+        forced_bytes > t.bytes_forced,
+        "no forced record drawn on arrival: {forced_bytes} forced, {t:?}"
+    );
+}
