@@ -406,16 +406,22 @@ fn looking_up_from_low_requests_nothing_below() {
     }
 }
 
-/// Block width 4 allows a level difference of 1 only (thesis §4.3.3): splits
-/// must force coarser neighbours, and the limit holds every frame.
-#[test]
-fn level_difference_limit_one_is_kept() {
-    let db4 = TestDb::build(TestDbConfig {
+/// Blocks 4 samples wide, levels 0..=5, with colour: a level difference
+/// of 1 only (thesis §4.3.3), so splits force coarser neighbours.
+fn width4_db() -> TestDb {
+    TestDb::build(TestDbConfig {
         elevation_width: 4,
         elevation_max_level: 5,
         colour: Some((8, 3)),
         ..TestDbConfig::default()
-    });
+    })
+}
+
+/// Block width 4 allows a level difference of 1 only (thesis §4.3.3): splits
+/// must force coarser neighbours, and the limit holds every frame.
+#[test]
+fn level_difference_limit_one_is_kept() {
+    let db4 = width4_db();
     let cfg = ClientConfig {
         decode_threads: 0,
         quality: QualityConfig {
@@ -963,12 +969,7 @@ fn records_delivered_before_a_frame_are_applied_in_it() {
 /// neighbours that are not visible are never drawn, and stay counted apart.
 #[test]
 fn forced_neighbours_are_drawn_on_arrival() {
-    let db4 = TestDb::build(TestDbConfig {
-        elevation_width: 4,
-        elevation_max_level: 5,
-        colour: Some((8, 3)),
-        ..TestDbConfig::default()
-    });
+    let db4 = width4_db();
     let cfg = ClientConfig {
         decode_threads: 0,
         ..ClientConfig::for_policy(Policy::Ours, 1.0)
