@@ -317,13 +317,12 @@ fn static_segments(t: &Trajectory) -> Vec<(f64, f64)> {
     out
 }
 
-/// Seconds from `start` until max SSE ≤ `tol` px (within `[start, end]`).
-/// The time from `start` to the first row up to `end` whose max SSE is at
-/// most `tol` (and, `with_colour`, whose colour texels are too).
-fn time_to_sse(rows: &[Row], start: f64, end: f64, tol: f64, with_colour: bool) -> Option<f64> {
+/// Seconds from `start` to the first row within `[start, end]` that
+/// `met` accepts (e.g. max SSE ≤ the tolerance).
+fn time_to(rows: &[Row], start: f64, end: f64, met: impl Fn(&Row) -> bool) -> Option<f64> {
     rows.iter()
         .filter(|r| r.t >= start - 1e-9 && r.t <= end + 1e-9)
-        .find(|r| r.sse_max <= tol && (!with_colour || r.colour_max <= tol))
+        .find(|r| met(r))
         .map(|r| r.t - start)
 }
 
@@ -980,11 +979,11 @@ fn run_link(
         .collect();
     let stops: Vec<(f64, Option<f64>)> = spans
         .iter()
-        .map(|&(a, b)| (a, time_to_sse(&rows, a, b, tol, false)))
+        .map(|&(a, b)| (a, time_to(&rows, a, b, |r| r.sse_max <= tol)))
         .collect();
     let stops_with_colour: Vec<Option<f64>> = spans
         .iter()
-        .map(|&(a, b)| time_to_sse(&rows, a, b, tol, true))
+        .map(|&(a, b)| time_to(&rows, a, b, |r| r.sse_max.max(r.colour_max) <= tol))
         .collect();
     let dt = 1.0 / a.fps;
     let error_integral: f64 = rows.iter().map(|r| r.sse_pixel_mean * dt).sum();

@@ -1164,7 +1164,6 @@ impl Client {
     }
 }
 
-/// The tolerance of `config` at quality factor `qf` ([`Client::tolerance`]).
 /// Whether `op` splits one of the `forced` blocks (a neighbour that must
 /// be at most the level difference coarser splits once its LOD 0 is
 /// there, and its record is drawn through its children) or a block that
@@ -1180,6 +1179,7 @@ fn unblocked_by(tree: &PartialTree, op: &TreeOp, forced: &[(Tree, BlockId)]) -> 
         })
 }
 
+/// The tolerance of `config` at quality factor `qf` ([`Client::tolerance`]).
 fn tolerance_for(config: &ClientConfig, qf: f64) -> f64 {
     let tol = sanitize_tolerance(config.max_sse_px);
     match config.quality.mode {

@@ -984,17 +984,13 @@ fn forced_neighbours_are_drawn_on_arrival() {
     );
     let mut forced_bytes = 0u64;
     for _ in 0..300 {
-        let out = c.frame(&cam, 1.0 / 60.0);
+        let out = converge::step(&mut c, &mut s, &db4, &cam);
         forced_bytes += out
             .send
             .iter()
             .filter(|o| o.forced)
             .map(|o| u64::from(o.record.size))
             .sum::<u64>();
-        s.submit(&out);
-        for (id, bytes) in s.tick(&db4) {
-            c.deliver(id, Ok(bytes));
-        }
         c.tree().validate().expect("valid");
     }
     let t = c.totals();
