@@ -102,7 +102,7 @@ pub struct FlightArgs {
     #[arg(long = "detail")]
     pub detail: Vec<planet_preprocess::DetailRegion>,
     /// Built-in trajectory name (rainier, everest, orbit, static-low,
-    /// low-pass) or file.
+    /// low-pass, glide-rainier, corner-pass, khumbu) or file.
     #[arg(long, default_value = "rainier")]
     pub trajectory: String,
     /// Client policy (ours, thesis, cesium, breadth); repeat to run several
@@ -1242,5 +1242,33 @@ mod tests {
         assert!((1..=4).contains(&r.start_chain), "{r:?}");
         let bound = r.start_bound_s(&"1mbit,100ms".parse().unwrap()).unwrap();
         assert!(bound >= 0.1 * r.start_chain as f64, "{bound}");
+    }
+
+    /// Every built-in trajectory, whole, at two frames a second: the client
+    /// with its defaults converges within the tolerance in every frame,
+    /// across the cube corner of `corner-pass`, the turning climbs and the
+    /// dives from orbit, and every path needs some record.
+    #[test]
+    fn every_builtin_trajectory_converges_every_frame() {
+        let db = crate::server::tests_support::tiny_db();
+        for name in planet_client::trajectory::BUILTIN_NAMES {
+            let traj = Trajectory::builtin(name).unwrap();
+            let mut a = args(&db, name, traj.duration());
+            a.fps = 2.0;
+            let r = instant_replay(&a, &traj).unwrap();
+            assert_eq!(
+                r.floor.len(),
+                (traj.duration() * 2.0) as usize + 1,
+                "{name}"
+            );
+            assert!(
+                r.floor
+                    .iter()
+                    .all(|&f| f.is_finite() && (0.0..=a.max_sse).contains(&f)),
+                "{name}: {:?}",
+                r.floor
+            );
+            assert!(r.needed > 0, "{name}: {r:?}");
+        }
     }
 }

@@ -84,13 +84,15 @@ pub enum TrajectoryError {
 }
 
 /// Names accepted by [`Trajectory::builtin`].
-pub const BUILTIN_NAMES: [&str; 6] = [
+pub const BUILTIN_NAMES: [&str; 8] = [
     "rainier",
     "everest",
     "orbit",
     "static-low",
     "low-pass",
     "glide-rainier",
+    "corner-pass",
+    "khumbu",
 ];
 
 /// Mount Rainier summit (degrees).
@@ -108,6 +110,8 @@ pub fn builtin_text(name: &str) -> Option<&'static str> {
         "static-low" => Some(include_str!("../../bench/trajectories/static-low.txt")),
         "low-pass" => Some(include_str!("../../bench/trajectories/low-pass.txt")),
         "glide-rainier" => Some(include_str!("../../bench/trajectories/glide-rainier.txt")),
+        "corner-pass" => Some(include_str!("../../bench/trajectories/corner-pass.txt")),
+        "khumbu" => Some(include_str!("../../bench/trajectories/khumbu.txt")),
         _ => None,
     }
 }
@@ -196,8 +200,7 @@ impl Trajectory {
         Trajectory::parse(&text)
     }
 
-    /// A built-in trajectory: `rainier`, `everest`, `orbit`, `static-low`
-    /// (see [`BUILTIN_NAMES`]).
+    /// A built-in trajectory, one of [`BUILTIN_NAMES`].
     pub fn builtin(name: &str) -> Option<Trajectory> {
         builtin_text(name).and_then(|t| Trajectory::parse(t).ok())
     }

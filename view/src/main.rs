@@ -167,7 +167,8 @@ enum Command {
 
 #[derive(Debug, Args)]
 struct RenderArgs {
-    /// Built-in trajectory (rainier, everest, orbit, static-low) or a file.
+    /// Built-in trajectory (rainier, everest, orbit, static-low, low-pass,
+    /// glide-rainier, corner-pass, khumbu) or a file.
     #[arg(long)]
     trajectory: String,
     #[command(flatten)]

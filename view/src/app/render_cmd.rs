@@ -7,7 +7,7 @@ use crate::app::connect::{self, Source};
 use crate::app::reference::{image_error, reference_config, reference_qf, Reference};
 use crate::app::scene::{BuildMode, SceneBuilder};
 use anyhow::{bail, Context, Result};
-use planet_client::trajectory::Trajectory;
+use planet_client::trajectory::{Trajectory, BUILTIN_NAMES};
 use planet_client::ClientConfig;
 use planet_linksim::LinkConfig;
 use planet_render::{DrawBlock, HeadlessRenderer, RenderSettings};
@@ -65,7 +65,10 @@ fn load_trajectory(spec: &str) -> Result<Trajectory> {
     }
     let p = std::path::Path::new(spec);
     if !p.exists() {
-        bail!("no built-in trajectory {spec:?} (rainier, everest, orbit, static-low) and no such file");
+        bail!(
+            "no built-in trajectory {spec:?} ({}) and no such file",
+            BUILTIN_NAMES.join(", ")
+        );
     }
     Trajectory::load(p).with_context(|| format!("trajectory {spec}"))
 }
