@@ -35,8 +35,13 @@ use planet_core::BlockId;
 /// A block's own error projected at one of its children, in tolerances,
 /// above which that child is likely to split and its table to be used: a
 /// level roughly halves the error, and the child splits when its children's
-/// error (two levels below) projects above the tolerance.
-pub const REFS_AT: f64 = 4.0;
+/// error (two levels below) projects above the tolerance. A reference's
+/// error is the largest in its subtree (errors are carried up), so a child
+/// in the flatter part of its parent holds less than its parent's error:
+/// one more factor of two for that. At 4 tolerances half of the tables a
+/// flight over the real data learned were never used (docs/BENCHMARKS.md,
+/// "Trajectories flown after tuning").
+pub const REFS_AT: f64 = 8.0;
 
 /// Frames a learned table or a held record is kept without being used.
 pub const KEEP_FRAMES: u64 = 90;
