@@ -387,11 +387,7 @@ struct JsonSummary<'a> {
 }
 
 pub fn run(args: FlightArgs) -> Result<()> {
-    let traj = match Trajectory::builtin(&args.trajectory) {
-        Some(t) => t,
-        None => Trajectory::load(Path::new(&args.trajectory))
-            .with_context(|| format!("trajectory {}", args.trajectory))?,
-    };
+    let traj = Trajectory::from_spec(&args.trajectory)?;
     std::fs::create_dir_all(&args.out)?;
     let several = args.dbs.len() > 1;
     let mut summaries = Vec::new();

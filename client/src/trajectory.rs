@@ -81,19 +81,58 @@ pub enum TrajectoryError {
     /// No keyframe at all.
     #[error("no keyframes")]
     Empty,
+    /// Neither a built-in name nor an existing file.
+    #[error("no built-in trajectory {spec:?} ({names}) and no such file", names = BUILTIN_NAMES.join(", "))]
+    NotFound {
+        /// The name or path given.
+        spec: String,
+    },
 }
 
-/// Names accepted by [`Trajectory::builtin`].
-pub const BUILTIN_NAMES: [&str; 8] = [
-    "rainier",
-    "everest",
-    "orbit",
-    "static-low",
-    "low-pass",
-    "glide-rainier",
-    "corner-pass",
-    "khumbu",
+/// The built-in trajectories: each name with `bench/trajectories/NAME.txt`,
+/// compiled in.
+const BUILTINS: [(&str, &str); 8] = [
+    (
+        "rainier",
+        include_str!("../../bench/trajectories/rainier.txt"),
+    ),
+    (
+        "everest",
+        include_str!("../../bench/trajectories/everest.txt"),
+    ),
+    ("orbit", include_str!("../../bench/trajectories/orbit.txt")),
+    (
+        "static-low",
+        include_str!("../../bench/trajectories/static-low.txt"),
+    ),
+    (
+        "low-pass",
+        include_str!("../../bench/trajectories/low-pass.txt"),
+    ),
+    (
+        "glide-rainier",
+        include_str!("../../bench/trajectories/glide-rainier.txt"),
+    ),
+    (
+        "corner-pass",
+        include_str!("../../bench/trajectories/corner-pass.txt"),
+    ),
+    (
+        "khumbu",
+        include_str!("../../bench/trajectories/khumbu.txt"),
+    ),
 ];
+
+/// Names accepted by [`Trajectory::builtin`].
+pub const BUILTIN_NAMES: [&str; BUILTINS.len()] = {
+    let mut names = [""; BUILTINS.len()];
+    let mut i = 0;
+    while i < names.len() {
+        names[i] = BUILTINS[i].0;
+        i += 1;
+    }
+    names
+};
 
 /// Mount Rainier summit (degrees).
 pub const RAINIER: (f64, f64) = (46.853, -121.760);
@@ -103,17 +142,7 @@ pub const EVEREST: (f64, f64) = (27.988, 86.925);
 /// The text of a built-in trajectory: `bench/trajectories/NAME.txt`,
 /// compiled in.
 pub fn builtin_text(name: &str) -> Option<&'static str> {
-    match name {
-        "rainier" => Some(include_str!("../../bench/trajectories/rainier.txt")),
-        "everest" => Some(include_str!("../../bench/trajectories/everest.txt")),
-        "orbit" => Some(include_str!("../../bench/trajectories/orbit.txt")),
-        "static-low" => Some(include_str!("../../bench/trajectories/static-low.txt")),
-        "low-pass" => Some(include_str!("../../bench/trajectories/low-pass.txt")),
-        "glide-rainier" => Some(include_str!("../../bench/trajectories/glide-rainier.txt")),
-        "corner-pass" => Some(include_str!("../../bench/trajectories/corner-pass.txt")),
-        "khumbu" => Some(include_str!("../../bench/trajectories/khumbu.txt")),
-        _ => None,
-    }
+    BUILTINS.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
 }
 
 fn wrap180(d: f64) -> f64 {
@@ -203,6 +232,19 @@ impl Trajectory {
     /// A built-in trajectory, one of [`BUILTIN_NAMES`].
     pub fn builtin(name: &str) -> Option<Trajectory> {
         builtin_text(name).and_then(|t| Trajectory::parse(t).ok())
+    }
+
+    /// What a command line's `--trajectory` names: a built-in trajectory,
+    /// else a file.
+    pub fn from_spec(spec: &str) -> Result<Trajectory, TrajectoryError> {
+        if let Some(t) = Trajectory::builtin(spec) {
+            return Ok(t);
+        }
+        let path = Path::new(spec);
+        if !path.exists() {
+            return Err(TrajectoryError::NotFound { spec: spec.into() });
+        }
+        Trajectory::load(path)
     }
 
     /// Time of the last keyframe (0 for a single keyframe).
@@ -322,6 +364,26 @@ mod tests {
             assert!(t.duration() > 0.0);
         }
         assert!(Trajectory::builtin("nope").is_none());
+        // A command line's spec: a name, a file, or an error naming both.
+        assert_eq!(
+            Trajectory::from_spec("khumbu").unwrap().keyframes,
+            Trajectory::builtin("khumbu").unwrap().keyframes
+        );
+        let e = Trajectory::from_spec("/nonexistent/nope.txt").unwrap_err();
+        assert!(matches!(e, TrajectoryError::NotFound { .. }), "{e}");
+        assert!(e.to_string().contains("corner-pass, khumbu"), "{e}");
+        let dir = std::env::temp_dir().join(format!("traj-spec-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("t.txt");
+        std::fs::write(&file, "0 1 2 1000 0 -90\n5 1 2 2000 0 -90\n").unwrap();
+        assert_eq!(
+            Trajectory::from_spec(file.to_str().unwrap())
+                .unwrap()
+                .keyframes
+                .len(),
+            2
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
         // The rainier flight: orbit, a stop of at least 10 s, ≥ 300 m/s.
         let r = Trajectory::builtin("rainier").unwrap();
         assert!(r.keyframes[0].alt_m >= 1.9e7);

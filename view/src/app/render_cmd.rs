@@ -6,8 +6,8 @@ use crate::app::camera::FOV_Y;
 use crate::app::connect::{self, Source};
 use crate::app::reference::{image_error, reference_config, reference_qf, Reference};
 use crate::app::scene::{BuildMode, SceneBuilder};
-use anyhow::{bail, Context, Result};
-use planet_client::trajectory::{Trajectory, BUILTIN_NAMES};
+use anyhow::{Context, Result};
+use planet_client::trajectory::Trajectory;
 use planet_client::ClientConfig;
 use planet_linksim::LinkConfig;
 use planet_render::{DrawBlock, HeadlessRenderer, RenderSettings};
@@ -59,20 +59,6 @@ pub fn fit_planes(
     s
 }
 
-fn load_trajectory(spec: &str) -> Result<Trajectory> {
-    if let Some(t) = Trajectory::builtin(spec) {
-        return Ok(t);
-    }
-    let p = std::path::Path::new(spec);
-    if !p.exists() {
-        bail!(
-            "no built-in trajectory {spec:?} ({}) and no such file",
-            BUILTIN_NAMES.join(", ")
-        );
-    }
-    Trajectory::load(p).with_context(|| format!("trajectory {spec}"))
-}
-
 fn fmt(v: f64) -> String {
     if v.is_finite() {
         format!("{v:.6}")
@@ -83,7 +69,7 @@ fn fmt(v: f64) -> String {
 
 /// Run the command; prints a summary.
 pub fn run(opts: &RenderOptions) -> Result<()> {
-    let traj = load_trajectory(&opts.trajectory)?;
+    let traj = Trajectory::from_spec(&opts.trajectory)?;
     let duration = opts.duration.unwrap_or_else(|| traj.duration()).max(0.0);
     let fps = opts.fps.max(0.1);
     let every = opts.every.max(1);
