@@ -35,6 +35,14 @@
 //! view's deepest record is a chain of round trips, two levels each at
 //! most with the child tables of `LodRefsRequest`).
 //!
+//! Per link, the same replay with each record answered only at the round
+//! trip that could first bring it ([`earliest_trip`]) gives a lower bound
+//! on any client's integral over that link's round-trip time
+//! (`round_trip_bound_error_integral_px_s`, [`round_trip_bound`]): the
+//! floor, and the error of the levels that no round trip could have
+//! brought yet. Where it is above half of a peer's integral, no scheduler
+//! of this protocol can halve that peer's error.
+//!
 //! The stops' times (`time_to_1px_after_stops_s`) measure the geometry, as
 //! the issue defines them. Colour is the other half of what is drawn, and
 //! policies order the two trees differently (`ours` weighs a colour
@@ -272,6 +280,9 @@ pub struct Summary {
     pub floor_integral: Option<f64>,
     /// [`InstantReplay::start_bound_s`] for this link.
     pub start_bound_s: Option<f64>,
+    /// [`round_trip_bound`] for this link's round trip: no client of the
+    /// protocol has a smaller `error_integral`.
+    pub round_trip_bound: Option<f64>,
     pub first_frame_ms: f64,
     /// The measured connection resumed a session and its Hello went as
     /// 0-RTT early data (`--warm`).
@@ -374,6 +385,10 @@ struct JsonSummary<'a> {
     /// `error_integral_px_s` − `floor_error_integral_px_s`: the error of
     /// data not yet arrived.
     excess_error_integral_px_s: Option<f64>,
+    /// A lower bound on `error_integral_px_s` for any client of the
+    /// protocol over this link ([`round_trip_bound`]): the floor, and the
+    /// error of the levels no round trip could have brought yet.
+    round_trip_bound_error_integral_px_s: Option<f64>,
     /// A lower bound on `time_to_1px_after_stops_s` of a stop at t = 0
     /// ([`InstantReplay::start_bound_s`]: the start chain's round trips, or
     /// one round trip and the start view's elevation bytes at the link's
@@ -443,12 +458,26 @@ pub fn run(args: FlightArgs) -> Result<()> {
         };
         let transports = a.transports.len() > 1;
         for (k, spec) in a.links.iter().enumerate() {
+            let bound = match &needed {
+                Some(r) => {
+                    let cfg: LinkConfig = spec.parse().with_context(|| format!("link {spec:?}"))?;
+                    let t0 = Instant::now();
+                    let b = round_trip_bound(&a, &traj, 2.0 * cfg.delay.as_secs_f64(), &r.floor)?;
+                    eprintln!(
+                        "{spec}: round-trip bound ∫ {b:.1} px·s ({:.1} s)",
+                        t0.elapsed().as_secs_f64()
+                    );
+                    Some(b)
+                }
+                None => None,
+            };
             for (&transport, &policy) in a
                 .transports
                 .iter()
                 .flat_map(|t| a.policies.iter().map(move |p| (t, p)))
             {
-                let (s, rows) = run_link(&a, &traj, spec, transport, policy, needed.as_ref())?;
+                let (mut s, rows) = run_link(&a, &traj, spec, transport, policy, needed.as_ref())?;
+                s.round_trip_bound = bound;
                 print_summary(std::slice::from_ref(&s));
                 let mut name = policy.name().to_string();
                 if transports {
@@ -516,6 +545,7 @@ pub fn run(args: FlightArgs) -> Result<()> {
             needed_bytes: needed,
             floor_error_integral_px_s: s.floor_integral,
             excess_error_integral_px_s: s.excess_integral(),
+            round_trip_bound_error_integral_px_s: s.round_trip_bound,
             start_lower_bound_s: s.start_bound_s,
             first_frame_ms: s.first_frame_ms,
             final_sse_max_px: s.final_sse_max,
@@ -601,10 +631,102 @@ impl InstantReplay {
             return Some(0.0);
         }
         link.bandwidth_bps.filter(|&b| b > 0).map(|b| {
-            let trips = 1 + self.start_chain.saturating_sub(1).div_ceil(2);
-            (trips as f64 * rtt).max(rtt + self.start_elevation as f64 * 8.0 / b as f64)
+            let deepest = u8::try_from(self.start_chain - 1).unwrap_or(u8::MAX);
+            let trips = earliest_trip(deepest);
+            (f64::from(trips) * rtt).max(rtt + self.start_elevation as f64 * 8.0 / b as f64)
         })
     }
+}
+
+/// The round trip, counted from a first request at t = 0 with only the
+/// header known, before which no client of the protocol can hold a record
+/// of `level`: a record's place is in its parent's record
+/// (docs/FORMAT.md), the roots' in the header, and a `LodRefsRequest`
+/// (docs/PROTOCOL.md §4.8) brings the references one level further. The
+/// roots arrive after the first round trip with their grandchildren's
+/// references, then two levels per round trip: level `L` after
+/// `1 + ⌈L/2⌉`.
+pub fn earliest_trip(level: u8) -> u32 {
+    1 + u32::from(level).div_ceil(2)
+}
+
+/// A lower bound on any client's `error_integral_px_s` over a link of
+/// round-trip time `rtt` (s): the flight replayed over the database as in
+/// [`instant_replay`], but each record answered only once the link's
+/// round trips could have brought it ([`earliest_trip`]), and at once from
+/// then on (the link's rate, framing, the congestion controller's start-up
+/// and decoding left out). Each frame is the default client converged at
+/// the tolerance with the records due by its time; from the round trip
+/// that can bring the deepest level on, that is the floor (`floor`, one
+/// per frame, whose length sets the flight's). It is the floor's integral
+/// plus the error of the levels no round trip could have brought yet: the
+/// start from orbit, where each level costs a round trip whatever the
+/// scheduler. Where it is above half of a policy's integral, no client of
+/// this protocol can have half that policy's error.
+pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f64]) -> Result<f64> {
+    let db = DbFile::open(&a.db).with_context(|| format!("opening {}", a.db.display()))?;
+    let datum = db.header.datum;
+    let deepest = db
+        .header
+        .colour
+        .as_ref()
+        .map_or(0, |c| c.max_level)
+        .max(db.header.elevation.max_level);
+    let all_due = f64::from(earliest_trip(deepest)) * rtt;
+    let (aspect, fov) = (16.0 / 9.0, 60f64.to_radians());
+    let mut client = Client::new(db.header.clone(), replay_config(a))?;
+    // Requests not due yet: id → the round trip that can answer them.
+    let mut parked: HashMap<u64, (u32, planet_core::format::ChildRef)> = HashMap::new();
+    let mut sum = 0.0;
+    for (n, &f) in floor.iter().enumerate() {
+        let t = n as f64 / a.fps;
+        if t >= all_due {
+            sum += f;
+            continue;
+        }
+        // (A nanosecond of slack: frame times and round trips are sums of
+        // decimals, and the bound must not miss a due frame by a rounding.)
+        let due = |trip: u32| f64::from(trip) * rtt <= t + 1e-9;
+        let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
+        let ready: Vec<(u64, planet_core::format::ChildRef)> = parked
+            .iter()
+            .filter(|(_, (trip, _))| due(*trip))
+            .map(|(&id, &(_, r))| (id, r))
+            .collect();
+        let mut delivered = !ready.is_empty();
+        for (id, r) in ready {
+            parked.remove(&id);
+            client.deliver(id, Ok(db.read_record(&r)?));
+        }
+        let mut last = 0.0;
+        for _ in 0..400 {
+            let out = client.frame(&camera, 1.0 / a.fps);
+            last = out.stats.pixel_mean_screen_error;
+            for id in &out.cancel {
+                parked.remove(id);
+            }
+            let before = delivered;
+            delivered = false;
+            for s in &out.send {
+                let trip = earliest_trip(s.block.level);
+                if due(trip) {
+                    let data = db.read_record(&s.record).with_context(|| {
+                        format!("record at {} + {}", s.record.offset, s.record.size)
+                    })?;
+                    client.deliver(s.id, Ok(data));
+                    delivered = true;
+                } else {
+                    parked.insert(s.id, (trip, s.record));
+                }
+            }
+            client.recycle(out.draw);
+            if !before && !delivered && client.pending_ops().is_empty() {
+                break;
+            }
+        }
+        sum += last;
+    }
+    Ok(sum / a.fps)
 }
 
 /// The default policy with every request answered in the same frame.
@@ -1017,6 +1139,7 @@ fn run_link(
             needed_over_delivered,
             floor_integral,
             start_bound_s,
+            round_trip_bound: None,
             first_frame_ms,
             connect_ms,
             bytes: counters.bytes_received,
@@ -1098,11 +1221,11 @@ pub fn summary_table(ss: &[Summary]) -> String {
     let mut t = String::new();
     let _ = writeln!(
         t,
-        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | to tolerance after each stop (start's bound) | with colour | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped, unused tables) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
+        "| database | link | transport | policy | ∫ mean SSE dt (per pixel) | ∫ max SSE dt | ∫ block-mean SSE dt | floor ∫ (excess) | round-trip bound ∫ | to tolerance after each stop (start's bound) | with colour | bytes | link bytes | needed / delivered | relevant (forced) | wasted (dropped, unused tables) | requests / cancels | first frame (connect) | CPU/frame mean / p99 | final max SSE / true err | late frames |"
     );
     let _ = writeln!(
         t,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for s in ss {
         let stops: Vec<String> = s
@@ -1120,7 +1243,7 @@ pub fn summary_table(ss: &[Summary]) -> String {
             .collect();
         let _ = writeln!(
             t,
-            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {}{} | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %, {:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
+            "| {} | {}{} | {} | {} | {:.1} px·s | {:.1} px·s | {:.1} px·s | {} | {} | {}{} | {} | {:.2} MB | {:.2} MB | {} | {:.2} % ({:.2} %) | {:.2} % ({:.2} %, {:.2} %) | {} / {} | {:.0} ms ({:.0} ms) | {:.3} / {:.3} ms | {:.2} px / {:.1} m | {} / {} |",
             s.db,
             s.label,
             if s.zero_rtt { " (0-RTT)" } else { "" },
@@ -1133,6 +1256,8 @@ pub fn summary_table(ss: &[Summary]) -> String {
                 (Some(f), Some(x)) => format!("{f:.1} px·s ({x:.1})"),
                 _ => "—".into(),
             },
+            s.round_trip_bound
+                .map_or("—".into(), |b| format!("{b:.1} px·s")),
             stops.join(", "),
             s.start_bound_s
                 .map_or(String::new(), |b| format!(" (≥ {b:.2})")),
@@ -1195,6 +1320,22 @@ mod tests {
         a
     }
 
+    /// `--trajectory`'s help names every built-in trajectory (the list is
+    /// written by hand, the names live in `planet_client::trajectory`).
+    #[test]
+    fn trajectory_help_names_every_builtin() {
+        use clap::CommandFactory;
+        let help = Cli::command()
+            .get_arguments()
+            .find(|a| a.get_id() == "trajectory")
+            .and_then(|a| a.get_help())
+            .expect("--trajectory help")
+            .to_string();
+        for name in planet_client::trajectory::BUILTIN_NAMES {
+            assert!(help.contains(name), "{name} missing from {help:?}");
+        }
+    }
+
     #[test]
     fn start_bound_takes_the_chain_or_the_bytes() {
         let link: LinkConfig = "1mbit,100ms".parse().unwrap();
@@ -1238,6 +1379,87 @@ mod tests {
         assert!((1..=4).contains(&r.start_chain), "{r:?}");
         let bound = r.start_bound_s(&"1mbit,100ms".parse().unwrap()).unwrap();
         assert!(bound >= 0.1 * r.start_chain as f64, "{bound}");
+    }
+
+    #[test]
+    fn a_level_can_arrive_two_per_round_trip_after_the_root() {
+        let trips: Vec<u32> = [0u8, 1, 2, 3, 4, 5, 16, 30]
+            .into_iter()
+            .map(earliest_trip)
+            .collect();
+        assert_eq!(trips, [1, 2, 2, 3, 3, 4, 9, 16]);
+    }
+
+    /// The round-trip bound lies between the floor and what any client
+    /// draws: the header alone until the first round trip, the floor once
+    /// every level can have arrived, and it grows with the round trip.
+    #[test]
+    fn round_trip_bound_is_the_header_until_the_first_round_trip_then_the_floor() {
+        let db = crate::server::tests_support::tiny_db();
+        let a = args(&db, "static-low", 2.0);
+        let traj = Trajectory::builtin("static-low").unwrap();
+        let r = instant_replay(&a, &traj).unwrap();
+        let floor = r.floor_integral(a.fps);
+        // The view from the header alone, as every client draws at t = 0.
+        let file = DbFile::open(&db).unwrap();
+        let camera = traj.camera_at(
+            0.0,
+            &file.header.datum,
+            60f64.to_radians(),
+            16.0 / 9.0,
+            a.viewport_height,
+        );
+        let mut client = Client::new(file.header.clone(), replay_config(&a)).unwrap();
+        let e0 = client
+            .frame(&camera, 1.0 / a.fps)
+            .stats
+            .pixel_mean_screen_error;
+        assert!(
+            e0 > a.max_sse && r.floor[0] <= a.max_sse,
+            "{e0} {:?}",
+            r.floor[0]
+        );
+        let bounds: Vec<f64> = [0.0, 0.1, 0.2, 0.4]
+            .into_iter()
+            .map(|rtt| round_trip_bound(&a, &traj, rtt, &r.floor).unwrap())
+            .collect();
+        // No round trip: the floor itself.
+        assert!((bounds[0] - floor).abs() < 1e-9, "{bounds:?} {floor}");
+        for (rtt, b) in [0.1, 0.2, 0.4].into_iter().zip(&bounds[1..]) {
+            // The frames before the first round trip draw the header: the
+            // rest at least the floor.
+            let before = (rtt * a.fps).ceil() as usize;
+            let at_least = (before as f64 * e0 + r.floor[before..].iter().sum::<f64>()) / a.fps;
+            assert!(*b >= at_least - 1e-9, "rtt {rtt}: {b} < {at_least}");
+        }
+        assert!(
+            bounds.windows(2).all(|w| w[0] < w[1]),
+            "not growing with the round trip: {bounds:?}"
+        );
+    }
+
+    /// Flights through the real server and link, `ours` and `cesium`, stay
+    /// at or above the bound for their link's round trip.
+    #[test]
+    fn real_flights_stay_above_their_round_trip_bound() {
+        let db = crate::server::tests_support::tiny_db();
+        let mut a = args(&db, "static-low", 2.0);
+        a.out = db.with_file_name("flight-bound");
+        std::fs::create_dir_all(&a.out).unwrap();
+        let traj = Trajectory::builtin("static-low").unwrap();
+        let r = instant_replay(&a, &traj).unwrap();
+        let bound = round_trip_bound(&a, &traj, 0.2, &r.floor).unwrap();
+        assert!(bound > r.floor_integral(a.fps), "{bound}");
+        for policy in [Policy::Ours, Policy::Cesium] {
+            let (s, rows) =
+                run_link(&a, &traj, "1mbit,100ms", Transport::Quic, policy, Some(&r)).unwrap();
+            assert_eq!(rows.len(), r.floor.len(), "{policy}");
+            assert!(
+                s.error_integral >= bound,
+                "{policy}: {} under the bound {bound}",
+                s.error_integral
+            );
+        }
     }
 
     /// Every built-in trajectory, whole, at two frames a second: the client
