@@ -134,6 +134,12 @@ pub const BUILTIN_NAMES: [&str; BUILTINS.len()] = {
     names
 };
 
+/// The help of a `--trajectory` option (`planet-bench flight`,
+/// `planet-view render`): every name of [`BUILTIN_NAMES`] (a test checks
+/// it), or a file.
+pub const TRAJECTORY_HELP: &str = "Built-in trajectory (rainier, everest, orbit, static-low, \
+    low-pass, glide-rainier, corner-pass, khumbu) or a trajectory file";
+
 /// Mount Rainier summit (degrees).
 pub const RAINIER: (f64, f64) = (46.853, -121.760);
 /// Mount Everest summit (degrees).
@@ -362,6 +368,7 @@ mod tests {
         for name in BUILTIN_NAMES {
             let t = Trajectory::builtin(name).expect(name);
             assert!(t.duration() > 0.0);
+            assert!(TRAJECTORY_HELP.contains(name), "{name} not in the help");
         }
         assert!(Trajectory::builtin("nope").is_none());
         // A command line's spec: a name, a file, or an error naming both.
