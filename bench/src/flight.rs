@@ -454,20 +454,28 @@ pub fn run(args: FlightArgs) -> Result<()> {
             );
             Some(r)
         };
+        // The database file for the round-trip bounds, opened once.
+        let file = match &needed {
+            Some(_) => {
+                Some(DbFile::open(&a.db).with_context(|| format!("opening {}", a.db.display()))?)
+            }
+            None => None,
+        };
         let transports = a.transports.len() > 1;
         for (k, spec) in a.links.iter().enumerate() {
-            let bound = match &needed {
-                Some(r) => {
+            let bound = match (&needed, &file) {
+                (Some(r), Some(file)) => {
                     let cfg: LinkConfig = spec.parse().with_context(|| format!("link {spec:?}"))?;
                     let t0 = Instant::now();
-                    let b = round_trip_bound(&a, &traj, 2.0 * cfg.delay.as_secs_f64(), &r.floor)?;
+                    let rtt = 2.0 * cfg.delay.as_secs_f64();
+                    let b = round_trip_bound(file, &a, &traj, rtt, &r.floor)?;
                     eprintln!(
                         "{spec}: round-trip bound ∫ {b:.1} px·s ({:.1} s)",
                         t0.elapsed().as_secs_f64()
                     );
                     Some(b)
                 }
-                None => None,
+                _ => None,
             };
             for (&transport, &policy) in a
                 .transports
@@ -661,9 +669,13 @@ pub fn earliest_trip(level: u8) -> u32 {
 /// start from orbit, where each level costs a round trip whatever the
 /// scheduler. Where it is above half of a policy's integral, no client of
 /// this protocol can have half that policy's error.
-pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f64]) -> Result<f64> {
-    let db = DbFile::open(&a.db).with_context(|| format!("opening {}", a.db.display()))?;
-    let datum = db.header.datum;
+pub fn round_trip_bound(
+    db: &DbFile,
+    a: &FlightArgs,
+    traj: &Trajectory,
+    rtt: f64,
+    floor: &[f64],
+) -> Result<f64> {
     let deepest = db
         .header
         .colour
@@ -671,7 +683,6 @@ pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f6
         .map_or(0, |c| c.max_level)
         .max(db.header.elevation.max_level);
     let all_due = f64::from(earliest_trip(deepest)) * rtt;
-    let (aspect, fov) = (16.0 / 9.0, 60f64.to_radians());
     let mut client = Client::new(db.header.clone(), replay_config(a))?;
     // Requests not due yet: id → the round trip that can answer them.
     let mut parked: HashMap<u64, (u32, planet_core::format::ChildRef)> = HashMap::new();
@@ -685,7 +696,7 @@ pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f6
         // (A nanosecond of slack: frame times and round trips are sums of
         // decimals, and the bound must not miss a due frame by a rounding.)
         let due = |trip: u32| f64::from(trip) * rtt <= t + 1e-9;
-        let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
+        let camera = flight_camera(traj, t, &db.header.datum, a);
         let ready: Vec<(u64, planet_core::format::ChildRef)> = parked
             .iter()
             .filter(|(_, (trip, _))| due(*trip))
@@ -694,8 +705,10 @@ pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f6
         let mut delivered = !ready.is_empty();
         for (id, r) in ready {
             parked.remove(&id);
-            client.deliver(id, Ok(db.read_record(&r)?));
+            client.deliver(id, Ok(read(db, &r)?));
         }
+        // As `converge`, but holding what is not due, and one more frame
+        // after every frame that answered something.
         let mut last = 0.0;
         for _ in 0..400 {
             let out = client.frame(&camera, 1.0 / a.fps);
@@ -708,10 +721,7 @@ pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f6
             for s in &out.send {
                 let trip = earliest_trip(s.block.level);
                 if due(trip) {
-                    let data = db.read_record(&s.record).with_context(|| {
-                        format!("record at {} + {}", s.record.offset, s.record.size)
-                    })?;
-                    client.deliver(s.id, Ok(data));
+                    client.deliver(s.id, Ok(read(db, &s.record)?));
                     delivered = true;
                 } else {
                     parked.insert(s.id, (trip, s.record));
@@ -725,6 +735,23 @@ pub fn round_trip_bound(a: &FlightArgs, traj: &Trajectory, rtt: f64, floor: &[f6
         sum += last;
     }
     Ok(sum / a.fps)
+}
+
+/// The camera of the flight at `t`: 60° vertical field of view, 16:9, the
+/// viewport's height of `--viewport-height`.
+fn flight_camera(
+    traj: &Trajectory,
+    t: f64,
+    datum: &planet_core::Datum,
+    a: &FlightArgs,
+) -> planet_client::Camera {
+    traj.camera_at(t, datum, 60f64.to_radians(), 16.0 / 9.0, a.viewport_height)
+}
+
+/// A record's bytes from the database file, the error naming its place.
+fn read(db: &DbFile, r: &planet_core::format::ChildRef) -> Result<Vec<u8>> {
+    db.read_record(r)
+        .with_context(|| format!("record at {} + {}", r.offset, r.size))
 }
 
 /// The default policy with every request answered in the same frame.
@@ -787,10 +814,7 @@ fn converge(
         }
         let busy = !out.send.is_empty() || !client.pending_ops().is_empty();
         for s in &out.send {
-            let data = db
-                .read_record(&s.record)
-                .with_context(|| format!("record at {} + {}", s.record.offset, s.record.size))?;
-            client.deliver(s.id, Ok(data));
+            client.deliver(s.id, Ok(read(db, &s.record)?));
         }
         client.recycle(out.draw);
         if !busy && client.queue().in_flight() == 0 {
@@ -807,14 +831,12 @@ fn instant_replay(a: &FlightArgs, traj: &Trajectory) -> Result<InstantReplay> {
     let mut out0 = InstantReplay::default();
     let duration = a.duration.unwrap_or(traj.duration()).min(traj.duration());
     let frames = (duration * a.fps).floor() as u64 + 1;
-    let aspect = 16.0 / 9.0;
-    let fov = 60f64.to_radians();
-    let camera = traj.camera_at(0.0, &datum, fov, aspect, a.viewport_height);
+    let camera = flight_camera(traj, 0.0, &datum, a);
     (out0.start_elevation, out0.start_chain) = start_needs(&db, &camera, a)?;
     let mut client = Client::new(db.header.clone(), replay_config(a))?;
     for n in 0..frames {
         let t = n as f64 / a.fps;
-        let camera = traj.camera_at(t, &datum, fov, aspect, a.viewport_height);
+        let camera = flight_camera(traj, t, &datum, a);
         let floor = converge(&mut client, &db, &camera, a.fps, |_, out| {
             for s in &out.send {
                 if seen.insert((s.record.offset, s.record.size)) {
@@ -904,13 +926,10 @@ fn run_link(
     let client_cfg = client_config(a, policy);
     let sampler = Sampler::open(&a.db)?;
     let datum = sampler.header().datum;
-    let aspect = 16.0 / 9.0;
-    let fov = 60f64.to_radians();
-    let vh = a.viewport_height;
     let duration = a.duration.unwrap_or(traj.duration()).min(traj.duration());
     // Fixed probes: ground points seen by the last camera, with the
     // full-resolution elevation from the database.
-    let last = traj.camera_at(duration, &datum, fov, aspect, vh);
+    let last = flight_camera(traj, duration, &datum, a);
     let lat0 = planet_core::cube::lat_lon_from_direction(last.eye.normalize().to_array()).0;
     let r_ground = datum.surface_radius(planet_core::cube::direction_from_lat_lon(lat0, 0.0));
     let mut cache = HashMap::new();
@@ -988,7 +1007,7 @@ fn run_link(
         } else if now - due > Duration::from_secs_f64(1.0 / a.fps) {
             frames_late += 1;
         }
-        let camera = traj.camera_at(t, &datum, fov, aspect, vh);
+        let camera = flight_camera(traj, t, &datum, a);
         let c0 = thread_cpu();
         let out = sc.frame(&camera, 1.0 / a.fps);
         let cpu = thread_cpu().saturating_sub(c0);
@@ -1039,7 +1058,7 @@ fn run_link(
         sc.client.recycle(out.draw);
     }
     if std::env::var_os("PLANET_BENCH_DEBUG").is_some() {
-        let camera = traj.camera_at(duration, &datum, fov, aspect, vh);
+        let camera = flight_camera(traj, duration, &datum, a);
         let out = sc.frame(&camera, 1.0 / a.fps);
         let drawn: HashMap<_, _> = out.draw.iter().map(|d| (d.block, d.lod)).collect();
         for &(lat, lon, _) in probes.iter().take(200) {
@@ -1384,13 +1403,7 @@ mod tests {
         let floor = r.floor_integral(a.fps);
         // The view from the header alone, as every client draws at t = 0.
         let file = DbFile::open(&db).unwrap();
-        let camera = traj.camera_at(
-            0.0,
-            &file.header.datum,
-            60f64.to_radians(),
-            16.0 / 9.0,
-            a.viewport_height,
-        );
+        let camera = flight_camera(&traj, 0.0, &file.header.datum, &a);
         let mut client = Client::new(file.header.clone(), replay_config(&a)).unwrap();
         let e0 = client
             .frame(&camera, 1.0 / a.fps)
@@ -1403,7 +1416,7 @@ mod tests {
         );
         let bounds: Vec<f64> = [0.0, 0.1, 0.2, 0.4]
             .into_iter()
-            .map(|rtt| round_trip_bound(&a, &traj, rtt, &r.floor).unwrap())
+            .map(|rtt| round_trip_bound(&file, &a, &traj, rtt, &r.floor).unwrap())
             .collect();
         // No round trip: the floor itself.
         assert!((bounds[0] - floor).abs() < 1e-9, "{bounds:?} {floor}");
@@ -1430,7 +1443,8 @@ mod tests {
         std::fs::create_dir_all(&a.out).unwrap();
         let traj = Trajectory::builtin("static-low").unwrap();
         let r = instant_replay(&a, &traj).unwrap();
-        let bound = round_trip_bound(&a, &traj, 0.2, &r.floor).unwrap();
+        let file = DbFile::open(&db).unwrap();
+        let bound = round_trip_bound(&file, &a, &traj, 0.2, &r.floor).unwrap();
         assert!(bound > r.floor_integral(a.fps), "{bound}");
         for policy in [Policy::Ours, Policy::Cesium] {
             let (s, rows) =
