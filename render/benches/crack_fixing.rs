@@ -13,11 +13,9 @@
 
 use planet_core::{BlockId, Datum, Edge, Face};
 use planet_render::mesh::sample_position;
-use planet_render::render::{COLOR_FORMAT, DEPTH_FORMAT};
-use planet_render::{BlockMesh, Camera, DrawBlock, FrameTarget, HeadlessRenderer, RenderSettings};
+use planet_render::{BlockMesh, Camera, DrawBlock, HeadlessRenderer, RenderSettings};
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::Instant;
 
 const W: usize = 64;
 const LEVEL: u8 = 3;
@@ -98,25 +96,6 @@ fn main() {
             glam::DVec3::Z,
         )
     };
-    let renderer = &mut hr.renderer;
-    let make = |format, label| {
-        renderer.device().create_texture(&wgpu::TextureDescriptor {
-            label: Some(label),
-            size: wgpu::Extent3d {
-                width: SIZE,
-                height: SIZE,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            view_formats: &[],
-        })
-    };
-    let color = make(COLOR_FORMAT, "bench colour").create_view(&Default::default());
-    let depth = make(DEPTH_FORMAT, "bench depth").create_view(&Default::default());
     let mut results = [
         Sample {
             cpu: vec![],
@@ -132,31 +111,19 @@ fn main() {
     // Two warm-up frames per setting (uploads happen there), then alternate.
     for round in 0..frames + 2 {
         for (k, fixing) in [true, false].into_iter().enumerate() {
-            renderer.settings.crack_fixing = fixing;
-            let t0 = Instant::now();
-            let mut enc = renderer
-                .device()
-                .create_command_encoder(&Default::default());
-            renderer.encode(
-                &mut enc,
-                FrameTarget {
-                    color: &color,
-                    depth: &depth,
-                    width: SIZE,
-                    height: SIZE,
-                },
-                &camera,
-                &blocks,
-            );
-            let t1 = Instant::now();
-            renderer.queue().submit([enc.finish()]);
-            let _ = renderer.device().poll(wgpu::PollType::wait_indefinitely());
-            let t2 = Instant::now();
+            hr.renderer.settings.crack_fixing = fixing;
+            let t = match hr.time_frame(&camera, &blocks) {
+                Ok(t) => t,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    std::process::exit(1);
+                }
+            };
             if round >= 2 {
                 let s = &mut results[k];
-                s.cpu.push((t1 - t0).as_secs_f64());
-                s.frame.push((t2 - t0).as_secs_f64());
-                s.triangles = renderer.stats.triangles;
+                s.cpu.push(t.encode_s);
+                s.frame.push(t.frame_s);
+                s.triangles = hr.renderer.stats.triangles;
             }
         }
     }
@@ -174,7 +141,7 @@ fn main() {
         let frame = median(&mut s.frame);
         tps[k] = s.triangles as f64 / frame;
         println!(
-            "| {name} | {} | {:.3} ms | {:.1} ms | {:.1} M |",
+            "| {name} | {} | {:.3} ms | {:.3} ms | {:.1} M |",
             s.triangles,
             cpu * 1e3,
             frame * 1e3,

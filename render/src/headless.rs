@@ -6,6 +6,7 @@ use crate::render::{
     DEPTH_FORMAT,
 };
 use std::path::Path;
+use std::time::Instant;
 
 /// Errors of the headless renderer.
 #[derive(Debug, thiserror::Error)]
@@ -22,6 +23,21 @@ pub enum ViewError {
     /// Writing a PNG failed.
     #[error("png: {0}")]
     Png(String),
+    /// Waiting for the device to finish a frame failed.
+    #[error("waiting for the device failed: {0}")]
+    Wait(String),
+}
+
+/// What one frame cost, measured without read-back.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameTiming {
+    /// Seconds spent encoding the frame's commands on the CPU (the
+    /// renderer's own per-frame CPU work: culling, uniforms, draw calls).
+    pub encode_s: f64,
+    /// Seconds from the start of encoding until the device has finished the
+    /// frame: on a GPU, the GPU's time plus the driver's; on lavapipe, the
+    /// rasterisation on the CPU too.
+    pub frame_s: f64,
 }
 
 /// A rendered image.
@@ -115,6 +131,21 @@ impl HeadlessRenderer {
         }))
         .map_err(|e| ViewError::NoAdapter(e.to_string()))?;
         let info = adapter.get_info();
+        // The read-back copies the depth texture, which some adapters
+        // (OpenGL ones: llvmpipe's GL when no Vulkan driver is installed)
+        // cannot do; say so rather than fail in the first frame.
+        if !adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES)
+        {
+            return Err(ViewError::NoAdapter(format!(
+                "{} ({:?}) cannot copy depth textures, which the headless renderer reads back; \
+                 install a Vulkan driver (Debian: mesa-vulkan-drivers for lavapipe) or set \
+                 WGPU_BACKEND to a backend that can",
+                info.name, info.backend
+            )));
+        }
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("planet-view headless"),
             required_features: wgpu::Features::empty(),
@@ -168,6 +199,51 @@ impl HeadlessRenderer {
     /// Image size.
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
+    }
+
+    /// Render `blocks` from `camera` into the offscreen targets and wait
+    /// until the device has finished, without reading anything back: the
+    /// frame's cost as a window would pay it (less the present). The first
+    /// frames of a block set include its uploads; time the later ones.
+    pub fn time_frame(
+        &mut self,
+        camera: &Camera,
+        blocks: &[DrawBlock],
+    ) -> Result<FrameTiming, ViewError> {
+        let cview = self
+            .color
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let dview = self
+            .depth
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let t0 = Instant::now();
+        let mut enc =
+            self.renderer
+                .device()
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("timed frame"),
+                });
+        self.renderer.encode(
+            &mut enc,
+            FrameTarget {
+                color: &cview,
+                depth: &dview,
+                width: self.width,
+                height: self.height,
+            },
+            camera,
+            blocks,
+        );
+        let t1 = Instant::now();
+        self.renderer.queue().submit([enc.finish()]);
+        self.renderer
+            .device()
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| ViewError::Wait(e.to_string()))?;
+        Ok(FrameTiming {
+            encode_s: (t1 - t0).as_secs_f64(),
+            frame_s: t0.elapsed().as_secs_f64(),
+        })
     }
 
     /// Render `blocks` from `camera` and read back colour and depth.

@@ -24,7 +24,7 @@ pub mod masks;
 pub mod mesh;
 pub mod render;
 
-pub use headless::{HeadlessRenderer, Image, ViewError};
+pub use headless::{FrameTiming, HeadlessRenderer, Image, ViewError};
 pub use mesh::BlockMesh;
 pub use render::{
     BlockTexture, Camera, ColourRef, DepthMode, DrawBlock, FrameTarget, Projection, RenderSettings,

@@ -400,6 +400,34 @@ fn horizon_planes_never_remove_what_an_infinite_far_plane_shows() {
 }
 
 /// 3×3 blocks of level 12 around a point (blocks about 2.4 km wide).
+/// `time_frame` (the frame-time benchmark's frame) draws what `render`
+/// draws: the same triangles into the same target, whose image `render`
+/// then reads back unchanged, and its times are finite with the encoding
+/// inside the frame.
+#[test]
+fn a_timed_frame_draws_the_rendered_scene() {
+    let Some(mut r) = renderer() else { return };
+    let blocks = draw_list(&seam_leaves(), rough);
+    r.renderer.settings.r_min = inner_radius(&blocks) * (1.0 - 1e-7);
+    r.renderer.settings.r_max = R + 3600.0;
+    let (_, cam) = seam_cameras().swap_remove(0);
+    let img = r.render(&cam, &blocks).unwrap();
+    let drawn = r.renderer.stats.triangles;
+    assert!(drawn > 0);
+    for _ in 0..3 {
+        let t = r.time_frame(&cam, &blocks).unwrap();
+        assert!(t.encode_s.is_finite() && t.encode_s > 0.0, "{t:?}");
+        assert!(t.frame_s.is_finite() && t.frame_s >= t.encode_s, "{t:?}");
+        assert_eq!(r.renderer.stats.triangles, drawn);
+    }
+    let again = r.render(&cam, &blocks).unwrap();
+    assert_eq!(again.rgba, img.rgba);
+    // A different scene draws differently: the assertion above can fail.
+    let fewer: Vec<DrawBlock> = blocks.iter().step_by(2).cloned().collect();
+    r.time_frame(&cam, &fewer).unwrap();
+    assert!(r.renderer.stats.triangles < drawn);
+}
+
 fn close_up() -> (Vec<DrawBlock>, [f64; 3]) {
     let f = Face::new(2).unwrap();
     let n = 1u32 << 12;

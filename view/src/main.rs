@@ -241,6 +241,11 @@ struct SnapshotArgs {
     /// Shade by altitude (blue, green, brown, white) instead of colour.
     #[arg(long)]
     altitude_colours: bool,
+    /// (Benchmark) then render the converged scene N more times without
+    /// read-back and print the frame times (median, p95, max; a table row
+    /// and a JSON line).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    time_frames: usize,
 }
 
 /// Parse `a,b[,c]` numbers.
@@ -326,6 +331,7 @@ fn snapshot(a: SnapshotArgs) -> Result<()> {
         px: a.px,
         sun: sun.map(|s| [s[0], s[1]]),
         altitude_colours: a.altitude_colours,
+        time_frames: a.time_frames,
     })
 }
 

@@ -35,6 +35,9 @@ pub struct SnapshotOptions {
     pub sun: Option<[f64; 2]>,
     /// Shade by altitude instead of the colour tree.
     pub altitude_colours: bool,
+    /// After the image, render the same converged scene this many more
+    /// times without read-back and print the frame times (0: none).
+    pub time_frames: usize,
 }
 
 /// Render the snapshot.
@@ -89,5 +92,67 @@ pub fn run(o: &SnapshotOptions) -> Result<()> {
         100.0 * covered as f64 / img.depth.len() as f64,
         r.adapter_name
     );
+    if o.time_frames > 0 {
+        time_frames(&mut r, &cam, &blocks, o.time_frames)?;
+    }
+    Ok(())
+}
+
+/// Frames rendered before the timed ones (uploads, pipeline warm-up).
+const WARM_UP_FRAMES: usize = 3;
+
+/// The value at quantile `q` (0..=1) of `v`, sorted in place.
+fn quantile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Render the converged scene `n` times (after a few warm-up frames) and
+/// print the frame and encode times: a table row and one JSON line.
+fn time_frames(
+    r: &mut HeadlessRenderer,
+    cam: &Camera,
+    blocks: &[planet_render::DrawBlock],
+    n: usize,
+) -> Result<()> {
+    let mut frame = Vec::with_capacity(n);
+    let mut encode = Vec::with_capacity(n);
+    for k in 0..WARM_UP_FRAMES + n {
+        let t = r.time_frame(cam, blocks)?;
+        if k >= WARM_UP_FRAMES {
+            frame.push(t.frame_s * 1e3);
+            encode.push(t.encode_s * 1e3);
+        }
+    }
+    let triangles = r.renderer.stats.triangles;
+    let (w, h) = r.size();
+    let f = [0.5, 0.95, 1.0].map(|q| quantile(&mut frame, q));
+    let e = [0.5, 0.95, 1.0].map(|q| quantile(&mut encode, q));
+    println!("| adapter | size | blocks | triangles | frame ms median / p95 / max | encode ms median / p95 / max | fps at the median | triangles/s |");
+    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| {} | {w}×{h} | {} | {triangles} | {:.3} / {:.3} / {:.3} | {:.3} / {:.3} / {:.3} | {:.1} | {:.1} M |",
+        r.adapter_name,
+        blocks.len(),
+        f[0],
+        f[1],
+        f[2],
+        e[0],
+        e[1],
+        e[2],
+        1e3 / f[0],
+        triangles as f64 / f[0] / 1e3
+    );
+    let json = serde_json::json!({
+        "adapter": r.adapter_name,
+        "width": w,
+        "height": h,
+        "blocks": blocks.len(),
+        "triangles": triangles,
+        "frames": n,
+        "frame_ms": {"median": f[0], "p95": f[1], "max": f[2]},
+        "encode_ms": {"median": e[0], "p95": e[1], "max": e[2]},
+    });
+    println!("{json}");
     Ok(())
 }
