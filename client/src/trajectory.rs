@@ -91,7 +91,7 @@ pub enum TrajectoryError {
 
 /// The built-in trajectories: each name with `bench/trajectories/NAME.txt`,
 /// compiled in.
-const BUILTINS: [(&str, &str); 8] = [
+const BUILTINS: [(&str, &str); 9] = [
     (
         "rainier",
         include_str!("../../bench/trajectories/rainier.txt"),
@@ -121,6 +121,10 @@ const BUILTINS: [(&str, &str); 8] = [
         "khumbu",
         include_str!("../../bench/trajectories/khumbu.txt"),
     ),
+    (
+        "edge-pass",
+        include_str!("../../bench/trajectories/edge-pass.txt"),
+    ),
 ];
 
 /// Names accepted by [`Trajectory::builtin`].
@@ -138,7 +142,7 @@ pub const BUILTIN_NAMES: [&str; BUILTINS.len()] = {
 /// `planet-view render`): every name of [`BUILTIN_NAMES`] (a test checks
 /// it), or a file.
 pub const TRAJECTORY_HELP: &str = "Built-in trajectory (rainier, everest, orbit, static-low, \
-    low-pass, glide-rainier, corner-pass, khumbu) or a trajectory file";
+    low-pass, glide-rainier, corner-pass, khumbu, edge-pass) or a trajectory file";
 
 /// Mount Rainier summit (degrees).
 pub const RAINIER: (f64, f64) = (46.853, -121.760);
@@ -378,7 +382,7 @@ mod tests {
         );
         let e = Trajectory::from_spec("/nonexistent/nope.txt").unwrap_err();
         assert!(matches!(e, TrajectoryError::NotFound { .. }), "{e}");
-        assert!(e.to_string().contains("corner-pass, khumbu"), "{e}");
+        assert!(e.to_string().contains("khumbu, edge-pass"), "{e}");
         let dir = std::env::temp_dir().join(format!("traj-spec-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let file = dir.join("t.txt");
