@@ -366,6 +366,24 @@ pub struct Client {
     memory_factor: f64,
 }
 
+/// Whether the answer to a request for `block` of tree `t` would be drawn
+/// in `view`: an elevation block is culled by its bounds (in view when it
+/// has none yet). A colour record textures the elevation leaves under its
+/// id, whose node's bounds stay in view well after every block under it
+/// has left (on a low, fast flight, colour answers for the ground passing
+/// under the camera arrived for nothing): it is culled by those leaves
+/// (the walk starts at that node).
+fn in_view(tree: &PartialTree, t: Tree, block: &BlockId, view: &View) -> bool {
+    match t {
+        Tree::Elevation => tree
+            .elevation()
+            .get(block)
+            .and_then(|n| n.bounds.as_ref())
+            .is_none_or(|b| view.is_visible(b)),
+        Tree::Colour => tree.elevation().leaves_in_view(block, view),
+    }
+}
+
 impl Client {
     /// A client for the database described by `header`.
     pub fn new(header: Header, config: ClientConfig) -> Result<Client, ClientError> {
@@ -891,11 +909,20 @@ impl Client {
 
         // Only blocks still visible when the answer will be applied
         // (view_prediction.rs); forced neighbour loads ignore visibility.
-        let predicted = self
+        // The answer's block must also be in view a horizon after that
+        // (`stay`): one the camera is leaving would be drawn for a frame or
+        // two at best, or not at all.
+        let (predicted, stay) = match self
             .predictor
-            .predict(camera, self.r_min)
+            .predict_stay(camera, self.r_min)
             .filter(|_| self.config.predict_view)
-            .map(|c| View::new(&c, self.r_min, self.r_max));
+        {
+            Some([arrival, after]) => (
+                Some(View::new(&arrival, self.r_min, self.r_max)),
+                Some(View::new(&after, self.r_min, self.r_max)),
+            ),
+            None => (None, None),
+        };
         // ... and that still need the LOD then: a request whose answer
         // would arrive after it stopped being useful is not sent.
         let later = predicted
@@ -964,8 +991,22 @@ impl Client {
         // stays in flight while this frame asks it.
         let asked_ahead: FastSet<BlockId> =
             eager.iter().chain(&ahead_loads).map(|r| r.block).collect();
-        let mut cancel = self.queue.retain_relevant(|t, b| {
-            tree.wants_refine(t, b) || (t == Tree::Elevation && asked_ahead.contains(b))
+        // With a moving camera (a prediction), a block that is neither in
+        // view now nor in the view predicted for its answer has left it
+        // and will not be drawn when the answer comes: cancelled at once,
+        // rather than after `cancel_after_frames` untriggered frames, in
+        // which answers kept arriving for the ground passed under a low,
+        // fast camera (docs/BENCHMARKS.md, "edge-pass").
+        let mut cancel = self.queue.retain_relevant(|r| {
+            if r.tree == Tree::Elevation && asked_ahead.contains(&r.block) {
+                return true;
+            }
+            tree.wants_refine(r.tree, &r.block)
+                && (r.forced
+                    || predicted.as_ref().is_none_or(|pv| {
+                        in_view(tree, r.tree, &r.block, &view)
+                            || in_view(tree, r.tree, &r.block, pv)
+                    }))
         });
         if !lookahead {
             ahead_loads.retain(|r| self.queue.is_in_flight(r.tree, &r.block));
@@ -980,27 +1021,19 @@ impl Client {
             .filter(|r| !self.decoding.contains(&(r.tree, r.block)))
             .filter(|r| self.backoff.ready(r.tree, &r.block, self.clock))
             .filter(|r| {
-                let Some(pv) = &predicted else { return true };
+                let (Some(pv), Some(sv)) = (&predicted, &stay) else {
+                    return true;
+                };
                 if r.forced {
                     return true;
                 }
-                // An elevation block is culled by its bounds. A colour record
-                // textures the elevation leaves under its id, whose node's
-                // bounds stay in view well after every block under it has
-                // left (on a low, fast flight, colour answers for the ground
-                // passing under the camera arrived for nothing): it is
-                // culled by those leaves (the walk starts at that node).
+                if !in_view(tree, r.tree, &r.block, pv) || !in_view(tree, r.tree, &r.block, sv) {
+                    return false;
+                }
                 let bounds = tree
                     .tree(Tree::Elevation)
                     .and_then(|t| t.get(&r.block))
                     .and_then(|n| n.bounds.as_ref());
-                let in_view = match r.tree {
-                    Tree::Elevation => bounds.is_none_or(|b| pv.is_visible(b)),
-                    Tree::Colour => tree.elevation().leaves_in_view(&r.block, pv),
-                };
-                if !in_view {
-                    return false;
-                }
                 let (Some(later), Some(b)) = (&later, bounds) else {
                     return true;
                 };

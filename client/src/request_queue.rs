@@ -244,14 +244,11 @@ impl RequestQueue {
     }
 
     /// Cancel every in-flight request for which `relevant` is false.
-    pub fn retain_relevant(
-        &mut self,
-        mut relevant: impl FnMut(Tree, &BlockId) -> bool,
-    ) -> Vec<u64> {
+    pub fn retain_relevant(&mut self, mut relevant: impl FnMut(&LoadRequest) -> bool) -> Vec<u64> {
         let gone: Vec<u64> = self
             .in_flight
             .iter()
-            .filter(|(_, f)| !relevant(f.request.tree, &f.request.block))
+            .filter(|(_, f)| !relevant(&f.request))
             .map(|(id, _)| *id)
             .collect();
         for id in &gone {

@@ -15,7 +15,11 @@
 //! 6298's RTTVAR), so that most answers land before the predicted view. The
 //! client requests a visible block only if it is visible in the predicted
 //! view as well (a colour block: one of the elevation leaves it textures,
-//! [`crate::tree::LinkedTree::leaves_in_view`]). A static camera predicts
+//! [`crate::tree::LinkedTree::leaves_in_view`]), and in the view one more
+//! horizon ahead ([`ViewPredictor::predict_stay`]): a block at the border
+//! of a view the camera is leaving is in view at the arrival by a few
+//! metres or not at all. A request in flight whose block is in neither the
+//! present view nor the predicted one is cancelled. A static camera predicts
 //! itself, so nothing changes for it; the displacement is capped at half the
 //! height above the planet's minimum sphere and the turn at 30°, so a
 //! prediction never puts the eye inside the planet or flips the view.
@@ -73,38 +77,63 @@ impl ViewPredictor {
     /// (first frame, no latency measured yet, or the camera did not move).
     /// `r_min` is the radius of the planet's minimum sphere.
     pub fn predict(&mut self, camera: &Camera, r_min: f64) -> Option<Camera> {
+        self.predict_stay(camera, r_min).map(|[arrival, _]| arrival)
+    }
+
+    /// As [`ViewPredictor::predict`], with a second camera: the one
+    /// [`STAY_HORIZONS`] horizons ahead, where a block must still be in
+    /// view for its answer to be worth asking. A block at the border of the
+    /// view that the camera is leaving is in view at the predicted arrival
+    /// by a few metres or not at all (on a low, fast flight, the blocks
+    /// passing out at the side of the screen: docs/BENCHMARKS.md,
+    /// "edge-pass"); its answer would be drawn a frame or two at best.
+    pub fn predict_stay(&mut self, camera: &Camera, r_min: f64) -> Option<[Camera; 2]> {
         let prev = self.prev.replace(*camera)?;
         let tau = self.horizon_frames()?;
-        let step = camera.eye - prev.eye;
-        let f0 = prev.forward.try_normalize()?;
-        let f1 = camera.forward.try_normalize()?;
-        if !(step.is_finite() && tau.is_finite()) {
-            return None;
-        }
-        if step == DVec3::ZERO && f0 == f1 {
-            return None;
-        }
-        // Eye: linear, at most half the height above the minimum sphere.
-        let mut shift = step * tau;
-        let height = camera.eye.length() - r_min;
-        let cap = 0.5 * height.max(0.0);
-        if shift.length() > cap {
-            shift = shift.normalize_or_zero() * cap;
-        }
-        // View direction: the per-frame turn, repeated, at most MAX_TURN.
-        let turn = (f0.angle_between(f1) * tau).min(MAX_TURN);
-        let forward = match f0.cross(f1).try_normalize() {
-            Some(axis) if turn > 0.0 && turn.is_finite() => {
-                glam::DQuat::from_axis_angle(axis, turn).mul_vec3(f1)
-            }
-            _ => f1,
-        };
-        Some(Camera {
-            eye: camera.eye + shift,
-            forward,
-            ..*camera
-        })
+        Some([
+            extrapolate(&prev, camera, tau, r_min)?,
+            extrapolate(&prev, camera, tau * STAY_HORIZONS, r_min)?,
+        ])
     }
+}
+
+/// How far ahead, in prediction horizons, a requested block must still be
+/// in view ([`ViewPredictor::predict_stay`]): one more horizon after the
+/// arrival.
+pub const STAY_HORIZONS: f64 = 2.0;
+
+/// `camera` extrapolated `tau` frames ahead from its step since `prev`;
+/// `None` when it did not move or turn.
+fn extrapolate(prev: &Camera, camera: &Camera, tau: f64, r_min: f64) -> Option<Camera> {
+    let step = camera.eye - prev.eye;
+    let f0 = prev.forward.try_normalize()?;
+    let f1 = camera.forward.try_normalize()?;
+    if !(step.is_finite() && tau.is_finite()) {
+        return None;
+    }
+    if step == DVec3::ZERO && f0 == f1 {
+        return None;
+    }
+    // Eye: linear, at most half the height above the minimum sphere.
+    let mut shift = step * tau;
+    let height = camera.eye.length() - r_min;
+    let cap = 0.5 * height.max(0.0);
+    if shift.length() > cap {
+        shift = shift.normalize_or_zero() * cap;
+    }
+    // View direction: the per-frame turn, repeated, at most MAX_TURN.
+    let turn = (f0.angle_between(f1) * tau).min(MAX_TURN);
+    let forward = match f0.cross(f1).try_normalize() {
+        Some(axis) if turn > 0.0 && turn.is_finite() => {
+            glam::DQuat::from_axis_angle(axis, turn).mul_vec3(f1)
+        }
+        _ => f1,
+    };
+    Some(Camera {
+        eye: camera.eye + shift,
+        forward,
+        ..*camera
+    })
 }
 
 #[cfg(test)]
@@ -144,6 +173,34 @@ mod tests {
         let q = p.predict(&b, R).expect("moving");
         assert!((q.eye.x - (R + 89_000.0)).abs() < 1e-6, "{}", q.eye.x - R);
         assert_eq!(q.forward, b.forward.normalize());
+    }
+
+    /// The second camera of `predict_stay` is `STAY_HORIZONS` horizons
+    /// ahead (where a requested block must still be in view), the first
+    /// the arrival's, as `predict`; both are capped alike.
+    #[test]
+    fn stay_camera_is_one_more_horizon_ahead() {
+        let mut p = ViewPredictor::new();
+        p.observe_latency(10);
+        let a = cam(DVec3::new(R + 100_000.0, 0.0, 0.0), DVec3::NEG_X);
+        let b = cam(DVec3::new(R + 99_000.0, 0.0, 0.0), DVec3::NEG_X);
+        assert!(p.predict_stay(&a, R).is_none());
+        let [arrival, stay] = p.predict_stay(&b, R).expect("moving");
+        assert!((arrival.eye.x - (R + 89_000.0)).abs() < 1e-6);
+        assert!(
+            (stay.eye.x - (R + 79_000.0)).abs() < 1e-6,
+            "{}",
+            stay.eye.x - R
+        );
+        // Close to the ground the cap (half the height) holds for both.
+        let mut p = ViewPredictor::new();
+        p.observe_latency(10);
+        p.predict_stay(&cam(DVec3::new(R + 1_100.0, 0.0, 0.0), DVec3::NEG_X), R);
+        let [arrival, stay] = p
+            .predict_stay(&cam(DVec3::new(R + 1_000.0, 0.0, 0.0), DVec3::NEG_X), R)
+            .expect("moving");
+        assert!((arrival.eye.x - (R + 500.0)).abs() < 1e-6);
+        assert!((stay.eye.x - (R + 500.0)).abs() < 1e-6);
     }
 
     /// The horizon is the mean latency plus two mean deviations: a steady

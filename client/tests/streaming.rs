@@ -534,6 +534,64 @@ fn predicted_view_requests_waste_less_while_descending() {
     );
 }
 
+/// A moving camera that turns its back on the blocks it asked: a request
+/// whose block is neither in view nor in the view predicted for its answer
+/// is cancelled in the frame that sees it leave, not after the queue's ten
+/// untriggered frames (client.rs, `retain_relevant`), and none stays in
+/// flight for a block out of both views.
+#[test]
+fn requests_for_blocks_left_behind_are_cancelled_at_once() {
+    let mut c = sse_client(1.0, 0);
+    // Answers take 30 frames: the requests of the first view are still in
+    // flight when the camera turns.
+    let mut s = FakeServer::new(30);
+    let d = DVec3::new(1.0, 0.25, 0.2).normalize();
+    let north = DVec3::Z.reject_from(d).normalize();
+    // 300 km up, moving north at 2 km a frame, looking north and down;
+    // then up, away from the planet.
+    let eye_at = |k: usize| surface(d, 300_000.0) + north * (2_000.0 * k as f64);
+    let look = |k: usize, up: bool| {
+        let eye = eye_at(k);
+        if up {
+            Camera::look_at(eye, eye * 2.0, north)
+        } else {
+            Camera::look_at(
+                eye,
+                eye + north * 400_000.0 - eye.normalize() * 300_000.0,
+                eye.normalize(),
+            )
+        }
+    };
+    let mut k = 0;
+    // Until a latency is measured (a prediction exists) and requests are
+    // in flight.
+    while k < 200 && (k < 40 || c.queue().in_flight() == 0) {
+        step(&mut c, &mut s, &look(k, false));
+        k += 1;
+    }
+    let asked: Vec<(Tree, BlockId, bool)> = c
+        .queue()
+        .in_flight_requests()
+        .map(|r| (r.tree, r.block, r.forced))
+        .collect();
+    let unforced = asked.iter().filter(|a| !a.2).count();
+    assert!(unforced > 0, "nothing in flight after {k} frames");
+    // Turn to look up: every block asked has left the view, and the
+    // prediction turns further away.
+    let out = step(&mut c, &mut s, &look(k, true));
+    assert!(
+        out.cancel.len() >= unforced,
+        "{} cancelled of {unforced} in flight",
+        out.cancel.len()
+    );
+    for (t, b, forced) in &asked {
+        assert!(
+            *forced || !c.queue().is_in_flight(*t, b),
+            "{t:?} {b:?} left the view and is still in flight"
+        );
+    }
+}
+
 /// Hand a frame's requests to the fake server, deliver what is due; whether
 /// the client is idle (nothing sent, in flight, pending, decoding or due).
 fn exchange(c: &mut Client, s: &mut FakeServer, out: &FrameOutput) -> bool {
