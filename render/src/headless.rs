@@ -201,29 +201,25 @@ impl HeadlessRenderer {
         (self.width, self.height)
     }
 
-    /// Render `blocks` from `camera` into the offscreen targets and wait
-    /// until the device has finished, without reading anything back: the
-    /// frame's cost as a window would pay it (less the present). The first
-    /// frames of a block set include its uploads; time the later ones.
-    pub fn time_frame(
+    /// A command encoder with the frame of `blocks` from `camera` drawn
+    /// into the offscreen targets, and the projection it used.
+    fn encode_frame(
         &mut self,
+        label: &str,
         camera: &Camera,
         blocks: &[DrawBlock],
-    ) -> Result<FrameTiming, ViewError> {
+    ) -> (wgpu::CommandEncoder, Projection) {
         let cview = self
             .color
             .create_view(&wgpu::TextureViewDescriptor::default());
         let dview = self
             .depth
             .create_view(&wgpu::TextureViewDescriptor::default());
-        let t0 = Instant::now();
-        let mut enc =
-            self.renderer
-                .device()
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("timed frame"),
-                });
-        self.renderer.encode(
+        let mut enc = self
+            .renderer
+            .device()
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
+        let projection = self.renderer.encode(
             &mut enc,
             FrameTarget {
                 color: &cview,
@@ -234,6 +230,20 @@ impl HeadlessRenderer {
             camera,
             blocks,
         );
+        (enc, projection)
+    }
+
+    /// Render `blocks` from `camera` into the offscreen targets and wait
+    /// until the device has finished, without reading anything back: the
+    /// frame's cost as a window would pay it (less the present). The first
+    /// frames of a block set include its uploads; time the later ones.
+    pub fn time_frame(
+        &mut self,
+        camera: &Camera,
+        blocks: &[DrawBlock],
+    ) -> Result<FrameTiming, ViewError> {
+        let t0 = Instant::now();
+        let (enc, _) = self.encode_frame("timed frame", camera, blocks);
         let t1 = Instant::now();
         self.renderer.queue().submit([enc.finish()]);
         self.renderer
@@ -249,29 +259,7 @@ impl HeadlessRenderer {
     /// Render `blocks` from `camera` and read back colour and depth.
     pub fn render(&mut self, camera: &Camera, blocks: &[DrawBlock]) -> Result<Image, ViewError> {
         let (w, h) = (self.width, self.height);
-        let cview = self
-            .color
-            .create_view(&wgpu::TextureViewDescriptor::default());
-        let dview = self
-            .depth
-            .create_view(&wgpu::TextureViewDescriptor::default());
-        let mut enc =
-            self.renderer
-                .device()
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("headless frame"),
-                });
-        let projection = self.renderer.encode(
-            &mut enc,
-            FrameTarget {
-                color: &cview,
-                depth: &dview,
-                width: w,
-                height: h,
-            },
-            camera,
-            blocks,
-        );
+        let (mut enc, projection) = self.encode_frame("headless frame", camera, blocks);
         let half = self.padded_row as u64 * h as u64;
         for (tex, aspect, offset) in [
             (&self.color, wgpu::TextureAspect::All, 0),
