@@ -909,9 +909,9 @@ impl Client {
 
         // Only blocks still visible when the answer will be applied
         // (view_prediction.rs); forced neighbour loads ignore visibility.
-        // The answer's block must also be in view a horizon after that
-        // (`stay`): one the camera is leaving would be drawn for a frame or
-        // two at best, or not at all.
+        // The answer's block must also be in view half a horizon after that
+        // (`stay`, `STAY_HORIZONS`): one the camera is leaving just then
+        // would be drawn for a frame or two at best, or not at all.
         let (predicted, stay) = match self
             .predictor
             .predict_stay(camera, self.r_min)

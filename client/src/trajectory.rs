@@ -91,7 +91,7 @@ pub enum TrajectoryError {
 
 /// The built-in trajectories: each name with `bench/trajectories/NAME.txt`,
 /// compiled in.
-const BUILTINS: [(&str, &str); 9] = [
+const BUILTINS: [(&str, &str); 10] = [
     (
         "rainier",
         include_str!("../../bench/trajectories/rainier.txt"),
@@ -125,6 +125,10 @@ const BUILTINS: [(&str, &str); 9] = [
         "edge-pass",
         include_str!("../../bench/trajectories/edge-pass.txt"),
     ),
+    (
+        "circle-rainier",
+        include_str!("../../bench/trajectories/circle-rainier.txt"),
+    ),
 ];
 
 /// Names accepted by [`Trajectory::builtin`].
@@ -142,7 +146,7 @@ pub const BUILTIN_NAMES: [&str; BUILTINS.len()] = {
 /// `planet-view render`): every name of [`BUILTIN_NAMES`] (a test checks
 /// it), or a file.
 pub const TRAJECTORY_HELP: &str = "Built-in trajectory (rainier, everest, orbit, static-low, \
-    low-pass, glide-rainier, corner-pass, khumbu, edge-pass) or a trajectory file";
+    low-pass, glide-rainier, corner-pass, khumbu, edge-pass, circle-rainier) or a trajectory file";
 
 /// Mount Rainier summit (degrees).
 pub const RAINIER: (f64, f64) = (46.853, -121.760);
@@ -382,7 +386,7 @@ mod tests {
         );
         let e = Trajectory::from_spec("/nonexistent/nope.txt").unwrap_err();
         assert!(matches!(e, TrajectoryError::NotFound { .. }), "{e}");
-        assert!(e.to_string().contains("khumbu, edge-pass"), "{e}");
+        assert!(e.to_string().contains("edge-pass, circle-rainier"), "{e}");
         let dir = std::env::temp_dir().join(format!("traj-spec-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let file = dir.join("t.txt");
