@@ -28,9 +28,11 @@
 //! The distance to the block is a lower bound of the distance from the eye
 //! to any point of its surface ([`Footprint::distance`]): the largest of
 //! the distance to its bounding ball, the eye's height above the highest
-//! point of its bounds, and the distance to the cone of directions that the
-//! block covers, so a block seen from above or from the side is not taken
-//! for one that surrounds the eye.
+//! point of its bounds, the distance to the cone of directions that the
+//! block covers, and the distance beyond the planes of its four edges
+//! (a coarse block's cone is far wider than the block itself), so a block
+//! seen from above or from the side is not taken for one that surrounds
+//! the eye.
 //!
 //! A block whose error is below the tolerance is never refined, whatever
 //! its size or distance; one above always is. Colour refines by projected
@@ -79,8 +81,8 @@ use crate::importance::{
     refine_importance, selected_lod, split_importance, wants_merge, wants_split, Importance,
     ScreenError,
 };
-use crate::visibility::{BlockBounds, View};
-use glam::DVec3;
+use crate::visibility::{BlockBounds, View, NO_HALF_SPACE};
+use glam::{DVec3, DVec4};
 use std::fmt;
 use std::str::FromStr;
 
@@ -179,6 +181,8 @@ pub struct Footprint {
     pub sin_half: f64,
     /// Largest distance of a bounding point from the planet's centre.
     pub r_top: f64,
+    /// The half-spaces along the block's edges ([`BlockBounds::edges`]).
+    pub edges: [DVec4; 4],
 }
 
 impl Footprint {
@@ -218,6 +222,7 @@ impl Footprint {
             cos_half: half_angle.cos(),
             sin_half: half_angle.sin(),
             r_top: if r_top.is_finite() { r_top } else { f64::MAX },
+            edges: b.edges,
         }
     }
 
@@ -233,6 +238,7 @@ impl Footprint {
             cos_half: -1.0,
             sin_half: 0.0,
             r_top: f64::MAX,
+            edges: [NO_HALF_SPACE; 4],
         }
     }
 
@@ -245,7 +251,12 @@ impl Footprint {
     /// - the distance from `eye` to the set of points at angle at least
     ///   `θ − half_angle` from its direction and at most `r_top` from the
     ///   centre, where `θ` is the angle between the eye and the axis: the
-    ///   block seen from the side.
+    ///   block seen from the side,
+    /// - `n·eye − w` for each of the edges' half-spaces `n·p ≤ w`
+    ///   ([`BlockBounds::edges`]), each holding the bounding points' hull
+    ///   and so the surface: the eye beside the block but inside its
+    ///   cone, which is far wider than the block (a level-1 block's cone
+    ///   reaches 32° from its axis, and holds eyes 660 km beside it).
     pub fn distance(&self, eye: DVec3) -> f64 {
         self.distance_from(eye, eye.length())
     }
@@ -282,7 +293,13 @@ impl Footprint {
                 };
             }
         }
-        let d = ball.max(above).max(side);
+        // Beside the block: beyond one of its edges' half-spaces.
+        let edge = self
+            .edges
+            .iter()
+            .map(|h| h.truncate().dot(eye) - h.w)
+            .fold(f64::NEG_INFINITY, f64::max);
+        let d = ball.max(above).max(side).max(edge);
         if d.is_nan() {
             f64::NEG_INFINITY
         } else {
@@ -674,6 +691,7 @@ mod tests {
             cos_half: -1.0,
             sin_half: 0.0,
             r_top: f64::MAX,
+            edges: [NO_HALF_SPACE; 4],
         }
     }
 
@@ -832,6 +850,52 @@ mod tests {
             // A millimetre of slack per 10 000 km for rounding.
             prop_assert!(dist <= min + 1e-3 + min * 1e-10, "{} > {} at {:?}", dist, min, id);
         }
+    }
+
+    /// A level-1 block seen from beside it, inside its cone of directions
+    /// (25° from its axis against the cone's 32°; the eye of circle-rainier
+    /// 3 km above the ground): the cone alone says the eye is inside
+    /// (distance ≤ 0, the error capped at the screen's height over the
+    /// whole screen); its edges' half-spaces give 663 km, within 1 % of
+    /// the distance to its surface and below it.
+    #[test]
+    fn footprint_sees_a_coarse_block_beside_the_eye() {
+        use planet_core::cube::FaceCoord;
+        use planet_core::{BlockId, Datum, Face};
+        let datum = Datum::WGS84;
+        let id = BlockId::new(Face::new(1).expect("face"), 1, 0, 1).expect("id");
+        let b = BlockBounds::new(&datum, id, -500.0, 4400.0);
+        let fp = Footprint::of(&b);
+        let eye = DVec3::new(-2_309_007.9, -3_717_774.2, 4_631_327.1);
+        let theta = fp.axis.dot(eye.normalize()).acos();
+        let cone_only = Footprint {
+            edges: [NO_HALF_SPACE; 4],
+            ..fp
+        };
+        assert!(theta < fp.half_angle);
+        assert!(
+            cone_only.distance(eye) <= 0.0,
+            "{}",
+            cone_only.distance(eye)
+        );
+        let d = fp.distance(eye);
+        let (s0, t0, s1, t1) = id.extent();
+        let k = 400;
+        let mut min = f64::INFINITY;
+        for j in 0..=k {
+            for i in 0..=k {
+                let fc = FaceCoord {
+                    face: id.face,
+                    s: s0 + (s1 - s0) * i as f64 / k as f64,
+                    t: t0 + (t1 - t0) * j as f64 / k as f64,
+                };
+                for h in [-500.0, 4400.0] {
+                    min = min
+                        .min((eye - DVec3::from_array(datum.position(fc.direction(), h))).length());
+                }
+            }
+        }
+        assert!(d > 0.99 * min && d <= min, "{d} against {min}");
     }
 
     #[test]
