@@ -790,6 +790,33 @@ mod tests {
         }
     }
 
+    /// The distance from `eye` to a `(k + 1)²` grid of the block's surface
+    /// points at each of `heights` (brute force, for the bound's tests).
+    fn surface_distance(
+        datum: &planet_core::Datum,
+        id: planet_core::BlockId,
+        heights: &[f64],
+        k: usize,
+        eye: DVec3,
+    ) -> f64 {
+        let (s0, t0, s1, t1) = id.extent();
+        let mut min = f64::INFINITY;
+        for j in 0..=k {
+            for i in 0..=k {
+                let fc = planet_core::cube::FaceCoord {
+                    face: id.face,
+                    s: s0 + (s1 - s0) * i as f64 / k as f64,
+                    t: t0 + (t1 - t0) * j as f64 / k as f64,
+                };
+                let u = fc.direction();
+                for &h in heights {
+                    min = min.min((eye - DVec3::from_array(datum.position(u, h))).length());
+                }
+            }
+        }
+        min
+    }
+
     proptest! {
         /// The footprint distance is a lower bound of the distance to the
         /// block's surface (a dense grid of its points at random heights in
@@ -830,23 +857,7 @@ mod tests {
             // The upper bound Refiner::surely_keeps_split relies on.
             let upper = (eye - b.centre).length() + b.sphere_radius;
             prop_assert!(dist <= upper * (1.0 + 1e-12), "{dist} > {upper}");
-            let (s0, t0, s1, t1) = id.extent();
-            let k = 24;
-            let mut min = f64::INFINITY;
-            for j in 0..=k {
-                for i in 0..=k {
-                    let fc = FaceCoord {
-                        face: id.face,
-                        s: s0 + (s1 - s0) * i as f64 / k as f64,
-                        t: t0 + (t1 - t0) * j as f64 / k as f64,
-                    };
-                    let u = fc.direction();
-                    for h in [h0, h0 + dh * 0.5, h0 + dh] {
-                        let p = DVec3::from_array(datum.position(u, h));
-                        min = min.min((eye - p).length());
-                    }
-                }
-            }
+            let min = surface_distance(&datum, id, &[h0, h0 + dh * 0.5, h0 + dh], 24, eye);
             // A millimetre of slack per 10 000 km for rounding.
             prop_assert!(dist <= min + 1e-3 + min * 1e-10, "{} > {} at {:?}", dist, min, id);
         }
@@ -860,7 +871,6 @@ mod tests {
     /// the distance to its surface and below it.
     #[test]
     fn footprint_sees_a_coarse_block_beside_the_eye() {
-        use planet_core::cube::FaceCoord;
         use planet_core::{BlockId, Datum, Face};
         let datum = Datum::WGS84;
         let id = BlockId::new(Face::new(1).expect("face"), 1, 0, 1).expect("id");
@@ -879,22 +889,7 @@ mod tests {
             cone_only.distance(eye)
         );
         let d = fp.distance(eye);
-        let (s0, t0, s1, t1) = id.extent();
-        let k = 400;
-        let mut min = f64::INFINITY;
-        for j in 0..=k {
-            for i in 0..=k {
-                let fc = FaceCoord {
-                    face: id.face,
-                    s: s0 + (s1 - s0) * i as f64 / k as f64,
-                    t: t0 + (t1 - t0) * j as f64 / k as f64,
-                };
-                for h in [-500.0, 4400.0] {
-                    min = min
-                        .min((eye - DVec3::from_array(datum.position(fc.direction(), h))).length());
-                }
-            }
-        }
+        let min = surface_distance(&datum, id, &[-500.0, 4400.0], 400, eye);
         assert!(d > 0.99 * min && d <= min, "{d} against {min}");
     }
 
