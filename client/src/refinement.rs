@@ -81,7 +81,7 @@ use crate::importance::{
     refine_importance, selected_lod, split_importance, wants_merge, wants_split, Importance,
     ScreenError,
 };
-use crate::visibility::{BlockBounds, View, NO_HALF_SPACE};
+use crate::visibility::{BlockBounds, View};
 use glam::{DVec3, DVec4};
 use std::fmt;
 use std::str::FromStr;
@@ -181,9 +181,17 @@ pub struct Footprint {
     pub sin_half: f64,
     /// Largest distance of a bounding point from the planet's centre.
     pub r_top: f64,
-    /// The half-spaces along the block's edges ([`BlockBounds::edges`]).
+    /// Half-spaces `n·p ≤ w` along the block's four edges (`xyz`: the
+    /// unit normal of [`BlockBounds::edge_normals`], `w`: the largest
+    /// `n·p` over the bounding points), each holding the bounding points'
+    /// hull and so the surface; [`NO_HALF_SPACE`] where an edge is
+    /// degenerate.
     pub edges: [DVec4; 4],
 }
+
+/// A half-space of [`Footprint::edges`] that bounds nothing (`n·p − w`
+/// is −∞ everywhere).
+pub const NO_HALF_SPACE: DVec4 = DVec4::new(0.0, 0.0, 1.0, f64::INFINITY);
 
 impl Footprint {
     /// The footprint of `b` (its bounding points' hull contains the
@@ -198,7 +206,12 @@ impl Footprint {
         };
         let mut cos_min: f64 = 1.0;
         let mut r_top: f64 = 0.0;
+        // Each edge plane moved out to the farthest bounding point.
+        let mut w = [f64::NEG_INFINITY; 4];
         for p in &b.points {
+            for (w, n) in w.iter_mut().zip(&b.edge_normals) {
+                *w = w.max(n.dot(*p));
+            }
             let l = p.length();
             r_top = r_top.max(l);
             if l > 0.0 {
@@ -222,7 +235,14 @@ impl Footprint {
             cos_half: half_angle.cos(),
             sin_half: half_angle.sin(),
             r_top: if r_top.is_finite() { r_top } else { f64::MAX },
-            edges: b.edges,
+            edges: std::array::from_fn(|k| {
+                let n = b.edge_normals[k];
+                if n != DVec3::ZERO && w[k].is_finite() {
+                    n.extend(w[k])
+                } else {
+                    NO_HALF_SPACE
+                }
+            }),
         }
     }
 
@@ -253,7 +273,7 @@ impl Footprint {
     ///   centre, where `θ` is the angle between the eye and the axis: the
     ///   block seen from the side,
     /// - `n·eye − w` for each of the edges' half-spaces `n·p ≤ w`
-    ///   ([`BlockBounds::edges`]), each holding the bounding points' hull
+    ///   ([`Footprint::edges`]), each holding the bounding points' hull
     ///   and so the surface: the eye beside the block but inside its
     ///   cone, which is far wider than the block (a level-1 block's cone
     ///   reaches 32° from its axis, and holds eyes 660 km beside it).

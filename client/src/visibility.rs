@@ -95,39 +95,26 @@ pub struct BlockBounds {
     /// only if one part is, which removes the false positives of one loose
     /// hull spanning both the space behind the eye and behind the horizon.
     pub parts: Vec<BlockBounds>,
-    /// Half-spaces `n·p ≤ w` (`xyz`: the unit normal `n`, `w`: the offset)
-    /// along the block's four edges, each holding every bounding point:
-    /// the plane through the planet centre and two adjacent corners'
-    /// directions, moved out to the farthest bounding point. The distance
-    /// from an eye beside the block to its surface is at least `n·eye − w`
-    /// ([`crate::refinement::Footprint::distance`]); a coarse block's cone
-    /// of directions is far wider than the block, and holds eyes tens of
-    /// kilometres from it. [`NO_HALF_SPACE`] where an edge is degenerate.
-    pub edges: [DVec4; 4],
+    /// Outward unit normals of the planes through the planet centre and
+    /// each edge's two corners' directions (`DVec3::ZERO` where an edge is
+    /// degenerate). Moved out to the farthest bounding point, each bounds
+    /// a half-space holding the block's surface, whose distance from an
+    /// eye beside the block is at least the eye's distance beyond it
+    /// ([`crate::refinement::Footprint::of`]): a coarse block's cone of
+    /// directions is far wider than the block, and holds eyes hundreds of
+    /// kilometres from it.
+    pub edge_normals: [DVec3; 4],
 }
 
-/// A half-space of [`BlockBounds::edges`] that bounds nothing
-/// (`n·p − w` is −∞ everywhere).
-pub const NO_HALF_SPACE: DVec4 = DVec4::new(0.0, 0.0, 1.0, f64::INFINITY);
-
-/// The half-space along the edge from direction `a` to `b` (unit vectors
-/// from the planet centre) on the side away from `inside`, moved out to
-/// hold every point of `points` ([`BlockBounds::edges`]).
-fn edge_half_space(a: DVec3, b: DVec3, inside: DVec3, points: &[DVec3]) -> DVec4 {
-    let n = a.cross(b);
-    let l = n.length();
-    if !(l > 0.0 && l.is_finite()) || points.is_empty() {
-        return NO_HALF_SPACE;
-    }
-    let n = if n.dot(inside) > 0.0 { -n / l } else { n / l };
-    let w = points
-        .iter()
-        .map(|p| n.dot(*p))
-        .fold(f64::NEG_INFINITY, f64::max);
-    if w.is_finite() {
-        n.extend(w)
+/// The outward unit normal of the plane through the planet centre and the
+/// directions `a` and `b` (unit vectors) on the side away from `inside`
+/// ([`BlockBounds::edge_normals`]); zero when `a` and `b` are parallel.
+fn edge_normal(a: DVec3, b: DVec3, inside: DVec3) -> DVec3 {
+    let n = a.cross(b).normalize_or_zero();
+    if n.dot(inside) > 0.0 {
+        -n
     } else {
-        NO_HALF_SPACE
+        n
     }
 }
 
@@ -146,7 +133,7 @@ impl BlockBounds {
             }
             b.parts = ids
                 .into_iter()
-                .map(|i| BlockBounds::build(datum, i, h_min, h_max, false))
+                .map(|i| BlockBounds::single(datum, i, h_min, h_max))
                 .collect();
         }
         b
@@ -154,13 +141,6 @@ impl BlockBounds {
 
     /// Bounds of `id` alone (no parts).
     pub fn single(datum: &Datum, id: BlockId, h_min: f64, h_max: f64) -> BlockBounds {
-        BlockBounds::build(datum, id, h_min, h_max, true)
-    }
-
-    /// [`BlockBounds::single`]; without its edges' half-spaces
-    /// ([`NO_HALF_SPACE`]) when `with_edges` is false, as for parts, which
-    /// only visibility reads.
-    fn build(datum: &Datum, id: BlockId, h_min: f64, h_max: f64, with_edges: bool) -> BlockBounds {
         let (h_min, h_max) = if h_min <= h_max {
             (h_min, h_max)
         } else {
@@ -223,11 +203,7 @@ impl BlockBounds {
         // Round the block: (0,0) → (1,0) → (1,1) → (0,1).
         let ring = [corners[0], corners[1], corners[3], corners[2]];
         let inside = dir(0.5, 0.5);
-        let edges = if with_edges {
-            std::array::from_fn(|k| edge_half_space(ring[k], ring[(k + 1) % 4], inside, &points))
-        } else {
-            [NO_HALF_SPACE; 4]
-        };
+        let edge_normals = std::array::from_fn(|k| edge_normal(ring[k], ring[(k + 1) % 4], inside));
         BlockBounds {
             points,
             min,
@@ -237,7 +213,7 @@ impl BlockBounds {
             sphere_radius,
             top_radius: top_radius(datum, corners, h_max),
             parts: Vec::new(),
-            edges,
+            edge_normals,
         }
     }
 }
