@@ -83,6 +83,5 @@ fn main() -> Result<()> {
 
 /// CPU time consumed by the calling thread.
 pub fn thread_cpu() -> std::time::Duration {
-    let ts = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
-    std::time::Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+    cpu_time::ThreadTime::now().as_duration()
 }
