@@ -14,7 +14,7 @@ use clap::Args;
 use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::request_queue::QueueConfig;
 use planet_client::trajectory::{camera_from_keyframe, Keyframe};
-use planet_client::{Client, ClientConfig, Policy};
+use planet_client::{Camera, Client, ClientConfig, FrameOutput, Policy};
 use planet_testkit::testdb::{FakeServer, TestDb, TestDbConfig};
 use std::time::Instant;
 
@@ -48,6 +48,14 @@ pub struct ResidentArgs {
     /// profiling one case).
     #[arg(long)]
     pub only: Option<String>,
+}
+
+/// One timed frame, apart from the frames that grow the tree, so that a
+/// profiler can collect these alone:
+/// `valgrind --tool=callgrind --toggle-collect='*timed_frame*'`.
+#[inline(never)]
+fn timed_frame(client: &mut Client, camera: &Camera) -> FrameOutput {
+    client.frame(camera, 1.0 / 30.0)
 }
 
 fn stats(v: &mut [f64]) -> (f64, f64, f64, f64) {
@@ -164,7 +172,7 @@ pub fn run(a: ResidentArgs) -> Result<()> {
             let camera = cam_at(turn * k as f64, 30.0 + drift * k as f64);
             let w0 = Instant::now();
             let c0 = thread_cpu();
-            let out = client.frame(&camera, 1.0 / 30.0);
+            let out = timed_frame(&mut client, &camera);
             v.push(thread_cpu().saturating_sub(c0).as_secs_f64() * 1e3);
             wall.push(w0.elapsed().as_secs_f64() * 1e3);
             ops += out.stats.splits + out.stats.merges + out.stats.refines_applied;
