@@ -270,11 +270,13 @@ pub struct Outgoing {
     pub importance: f64,
     /// Forced by a neighbour's split (visibility ignored, §4.3.3).
     pub forced: bool,
-    /// Ask for the child tables of the record's children too
-    /// (`LodRefsRequest`, docs/PROTOCOL.md §4.8; [`crate::lookahead`]). A
-    /// transport that cannot may send a plain request: the client then
-    /// gets the record alone.
-    pub refs: bool,
+    /// Ask for the child tables of the record's children too, each only
+    /// if its references' largest error reaches the child's floor (metres,
+    /// the record's child order; `LodRefsAboveRequest`, docs/PROTOCOL.md
+    /// §4.9; [`crate::lookahead`]). A transport that cannot may send a
+    /// `LodRefsRequest` (every table) or a plain request: the client then
+    /// gets more tables, or the record alone.
+    pub refs: Option<[f32; 4]>,
 }
 
 /// What one frame produced.
@@ -1069,6 +1071,8 @@ impl Client {
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
         let known = &self.lookahead;
+        // How far the camera can come while a table asked now is kept.
+        let approach = self.predictor.step() * crate::lookahead::KEEP_FRAMES as f64;
         let send: Vec<Outgoing> = chosen
             .send
             .into_iter()
@@ -1079,9 +1083,11 @@ impl Client {
                 block: r.block,
                 importance: r.importance,
                 forced: r.forced,
-                refs: lookahead
-                    && r.tree == Tree::Elevation
-                    && wants_tables(tree, known, arrival, r.block, &r.record),
+                refs: if lookahead && r.tree == Tree::Elevation {
+                    wants_tables(tree, known, arrival, approach, r.block, &r.record)
+                } else {
+                    None
+                },
             })
             .collect();
         self.pending_ops = ops;

@@ -238,35 +238,58 @@ impl Lookahead {
     }
 }
 
+/// The error floor of a child's table is this fraction of the error that
+/// projects to one tolerance at the child's ball in the view of the
+/// request's arrival ([`wants_tables`]), brought closer by as far as the
+/// camera can come while the table is kept: the child's split is tested
+/// with its own, tighter bounds (not always farther than that ball).
+pub const TABLE_FLOOR_MARGIN: f64 = 0.5;
+
 /// Whether a request for `block` (its record `record`) should ask for its
-/// children's tables: they are not known yet, and one of its four children
-/// at least is likely to split. A child's table is used when the child
-/// splits, that is when its own children (two levels below `block`, their
-/// error about a quarter of `block`'s) project above the tolerance: the
-/// child is visible and the block's error projected at the child's ball is
-/// above [`REFS_AT`] tolerances, in the view predicted for the record's
-/// arrival (`arrival`), when the tables are used. The child's bounds are
-/// those of its area with `block`'s height range (conservative: its own is
-/// inside it). Testing each child rather than the block's nearest point
-/// leaves out the tables of a block whose visible children are all far
-/// (docs/BENCHMARKS.md: unused tables on a low, fast flight).
+/// children's tables, and if so each child's error floor (metres, the
+/// block's child order; docs/PROTOCOL.md §4.9): they are not known yet,
+/// and one of its four children at least is likely to split. A child's
+/// table is used when the child splits, that is when its own children (two
+/// levels below `block`, their error about a quarter of `block`'s) project
+/// above the tolerance: the child is visible and the block's error
+/// projected at the child's ball is above [`REFS_AT`] tolerances, in the
+/// view predicted for the record's arrival (`arrival`), when the tables are
+/// used. The child's bounds are those of its area with `block`'s height
+/// range (conservative: its own is inside it). Testing each child rather
+/// than the block's nearest point leaves out the tables of a block whose
+/// visible children are all far (docs/BENCHMARKS.md: unused tables on a low,
+/// fast flight).
+///
+/// `block`'s error is the largest in its subtree, and may come from one
+/// rough child while a sibling's own children project far under the
+/// tolerance; only the server, which reads each child's table, knows. So
+/// each child gets a floor: the error that projects to
+/// [`TABLE_FLOOR_MARGIN`] tolerances at its ball, `approach` metres closer
+/// (how far the camera can come while the table is kept, [`KEEP_FRAMES`]
+/// frames at its present speed: a table asked on a dive is used lower
+/// down), +∞ for a child out of view; the server leaves out a table whose
+/// references all lie under it (docs/BENCHMARKS.md, "Why khumbu at
+/// 10 Mbit/s sits at the relevance goal's edge").
 pub(crate) fn wants_tables(
     tree: &PartialTree,
     known: &Lookahead,
     arrival: (&View, &Refiner),
+    approach: f64,
     block: BlockId,
     record: &ChildRef,
-) -> bool {
+) -> Option<[f32; 4]> {
     let (view, refiner) = arrival;
     if known.knows(&block) {
-        return false;
+        return None;
     }
     let w = tree.elevation().width as f64;
-    let at = refiner.tolerance() * REFS_AT;
-    block.children().into_iter().any(|c| {
+    let tol = refiner.tolerance();
+    let mut floors = [f32::INFINITY; 4];
+    let mut wanted = false;
+    for (k, c) in block.children().into_iter().enumerate() {
         let b = tree.bounds_of(c, record);
         if !view.is_visible(&b) {
-            return false;
+            continue;
         }
         let m = refiner.measure(
             Kind::Elevation,
@@ -275,6 +298,66 @@ pub(crate) fn wants_tables(
             record.error as f64,
             0.0,
         );
-        m.a > at
-    })
+        wanted |= m.a > tol * REFS_AT;
+        // The scale is inversely proportional to the distance (at least
+        // 1 m here: a larger scale only lowers the floor).
+        let closer = (m.dist - approach.max(0.0)).max(1.0);
+        let scale = if closer < m.dist {
+            m.scale * m.dist / closer
+        } else {
+            m.scale
+        };
+        floors[k] = table_floor(tol * TABLE_FLOOR_MARGIN, scale);
+    }
+    wanted.then_some(floors)
+}
+
+/// The largest `f32` error (metres) that projects to at most `px` pixels at
+/// `scale` pixels per metre, at least 0: +∞ where nothing projects that far
+/// (a zero scale), 0 where everything does.
+fn table_floor(px: f64, scale: f64) -> f32 {
+    let e = px / scale;
+    if e.is_nan() || e < 0.0 {
+        return 0.0;
+    }
+    let f = e as f32;
+    if f as f64 > e {
+        f.next_down().max(0.0)
+    } else {
+        f
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The floor is the largest `f32` that projects to at most the given
+    /// pixels, never negative or NaN: what `ErrorFloors` accepts.
+    #[test]
+    fn a_table_floor_projects_to_at_most_its_pixels() {
+        for &(px, scale) in &[
+            (0.5, 1.0),
+            (0.5, 3.0),
+            (0.5, 1e-7),
+            (0.5, 7.3e4),
+            (2.0, 0.1),
+            (0.5, 1.0 / 3.0),
+            (1e-3, 123.456),
+        ] {
+            let f = table_floor(px, scale);
+            assert!(f >= 0.0 && f.is_finite(), "{px} {scale}: {f}");
+            assert!(f as f64 * scale <= px, "{px} {scale}: {f}");
+            assert!(
+                f.next_up() as f64 * scale > px * (1.0 - 1e-6),
+                "{px} {scale}: {f}"
+            );
+        }
+        // Nothing projects that far: never; everything does: always.
+        assert_eq!(table_floor(0.5, 0.0), f32::INFINITY);
+        assert_eq!(table_floor(0.5, f64::MAX), 0.0);
+        assert_eq!(table_floor(0.5, f64::INFINITY), 0.0);
+        assert_eq!(table_floor(0.5, f64::NAN), 0.0);
+        assert_eq!(table_floor(0.0, 5.0), 0.0);
+    }
 }

@@ -43,6 +43,8 @@ pub struct ViewPredictor {
     latency_frames: Option<f64>,
     /// Moving mean deviation of the latency (RFC 6298's RTTVAR), frames.
     latency_dev: f64,
+    /// The eye's displacement over the last frame, metres.
+    step: f64,
 }
 
 impl ViewPredictor {
@@ -62,6 +64,12 @@ impl ViewPredictor {
                 l + LATENCY_SMOOTHING * (f - l)
             }
         });
+    }
+
+    /// How far the eye moved over the last frame seen by
+    /// [`ViewPredictor::predict_stay`], metres (0 before two frames).
+    pub fn step(&self) -> f64 {
+        self.step
     }
 
     /// The horizon of the prediction in frames: the measured latency from
@@ -89,6 +97,8 @@ impl ViewPredictor {
     /// "edge-pass"); its answer would be drawn a frame or two at best.
     pub fn predict_stay(&mut self, camera: &Camera, r_min: f64) -> Option<[Camera; 2]> {
         let prev = self.prev.replace(*camera)?;
+        let step = (camera.eye - prev.eye).length();
+        self.step = if step.is_finite() { step } else { 0.0 };
         let tau = self.horizon_frames()?;
         Some([
             extrapolate(&prev, camera, tau, r_min)?,

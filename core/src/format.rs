@@ -733,21 +733,36 @@ pub fn encode_child_tables(tables: &[Option<Vec<ChildRef>>]) -> Vec<u8> {
 /// The trailer of child tables for `record` (whose checksum the caller has
 /// checked), reading each child's record with `read`: a child whose read
 /// fails (`None`), whose checksum fails or whose references do not check
-/// is marked unknown. What a server answers to `LodRefsRequest`.
+/// is marked unknown. What a server answers to `LodRefsRequest`
+/// (`floors` `None`) and to `LodRefsAboveRequest` (docs/PROTOCOL.md §4.9):
+/// there a child's table of four references whose largest `error` is under
+/// `floors[k]` (metres, the record's child order) is marked unknown too, as
+/// the client said it would not use it; a leaf's empty table is kept.
 pub fn child_tables_for<B: AsRef<[u8]>>(
     record: &[u8],
     file_len: Option<u64>,
+    floors: Option<[f32; 4]>,
     mut read: impl FnMut(&ChildRef) -> Option<B>,
 ) -> Result<Vec<u8>, FormatError> {
     let children = record_child_refs(record, file_len)?;
     let tables: Vec<Option<Vec<ChildRef>>> = children
         .iter()
-        .map(|c| {
+        .enumerate()
+        .map(|(k, c)| {
             let b = read(c)?;
             let b = b.as_ref();
-            (b.len() == c.size as usize && record_checksum_ok(b))
+            let refs = (b.len() == c.size as usize && record_checksum_ok(b))
                 .then(|| record_child_refs(b, file_len).ok())
-                .flatten()
+                .flatten()?;
+            let largest = refs
+                .iter()
+                .map(|r| r.error)
+                .fold(f32::NEG_INFINITY, f32::max);
+            let floor = floors.and_then(|f| f.get(k).copied());
+            match floor {
+                Some(f) if !refs.is_empty() && largest < f => None,
+                _ => Some(refs),
+            }
         })
         .collect();
     Ok(encode_child_tables(&tables))
@@ -1148,6 +1163,78 @@ mod tests {
         );
         assert_eq!(record_child_refs(&rec, None).unwrap()[1], r(104));
         assert!(record_child_refs(&rec[..rec.len() - 1], None).is_err());
+    }
+
+    #[test]
+    fn child_tables_above_floors_leave_out_the_tables_under_them() {
+        let payload = crate::codec::Payload {
+            raw_len: 3,
+            bytes: vec![1, 2, 3],
+        };
+        let grand = |o: u64, error: f32| ChildRef {
+            offset: o,
+            size: 40,
+            error,
+            min_elevation: -3.0,
+            max_elevation: 9.0,
+        };
+        let parent_id = BlockId::new(Face::ALL[0], 1, 0, 1).unwrap();
+        // Child k's grandchildren's errors: the largest is 8, 2, 0.5 and
+        // none (a leaf).
+        let errors: [&[f32]; 4] = [&[1.0, 8.0, 0.0, 3.0], &[2.0, 2.0, 0.5, 1.0], &[0.5; 4], &[]];
+        let mut file: Vec<(ChildRef, Vec<u8>)> = vec![];
+        let mut at = 1000u64;
+        for (k, e) in errors.iter().enumerate() {
+            let refs: Vec<ChildRef> = e
+                .iter()
+                .enumerate()
+                .map(|(i, &x)| grand(64 + 40 * i as u64, x))
+                .collect();
+            let rec = encode_record(Tree::Elevation, parent_id.child(k), &refs, &payload);
+            let r = ChildRef {
+                offset: at,
+                size: rec.len() as u32,
+                error: 9.0,
+                min_elevation: -3.0,
+                max_elevation: 9.0,
+            };
+            at += rec.len() as u64;
+            file.push((r, rec));
+        }
+        let children: Vec<ChildRef> = file.iter().map(|f| f.0).collect();
+        let parent = encode_record(Tree::Elevation, parent_id, &children, &payload);
+        let read = |c: &ChildRef| file.iter().find(|f| f.0 == *c).map(|f| f.1.clone());
+        let tables = |floors| {
+            let b = child_tables_for(&parent, None, floors, read).unwrap();
+            parse_child_tables(&b, 4, None).unwrap()
+        };
+        let all = tables(None);
+        assert!(all[..3]
+            .iter()
+            .all(|t| t.as_ref().is_some_and(|t| t.len() == 4)));
+        assert_eq!(all[3], Some(vec![]));
+        // A floor of 0 is the LodRefsRequest's answer.
+        assert_eq!(tables(Some([0.0; 4])), all);
+        // Reached (8 ≥ 8, 2 ≥ 1.5) or not (0.5 < 0.6); a leaf whatever its
+        // floor.
+        let some = tables(Some([8.0, 1.5, 0.6, f32::INFINITY]));
+        assert_eq!(some[0], all[0]);
+        assert_eq!(some[1], all[1]);
+        assert_eq!(some[2], None);
+        assert_eq!(some[3], Some(vec![]));
+        let none = tables(Some([f32::INFINITY; 4]));
+        assert_eq!(none, vec![None, None, None, Some(vec![])]);
+        // Each left-out table is one byte (0xff) instead of 97.
+        let b = child_tables_for(&parent, None, Some([f32::INFINITY; 4]), read).unwrap();
+        assert_eq!(
+            b,
+            vec![
+                CHILD_TABLE_UNKNOWN,
+                CHILD_TABLE_UNKNOWN,
+                CHILD_TABLE_UNKNOWN,
+                0
+            ]
+        );
     }
 
     fn sample_header(colour: bool) -> Header {

@@ -19,8 +19,8 @@ use std::fmt;
 use crate::codec;
 use crate::error::ProtocolError;
 use crate::message::{
-    Cancel, ErrorMsg, Goodbye, Hello, LodRequest, Message, ResponseHead, Welcome, WireBody,
-    MAX_HEADER_LEN,
+    Cancel, ErrorMsg, Goodbye, Hello, LodRefsAboveRequest, LodRequest, Message, ResponseHead,
+    Welcome, WireBody, MAX_HEADER_LEN,
 };
 
 /// Size of the length prefix.
@@ -41,6 +41,15 @@ pub const MAX_WELCOME_FRAME_LEN: u32 = MAX_HEADER_LEN as u32 + MAX_FRAME_LEN;
 /// `LodRefsRequest` frame ([`Message::LodRefsRequest`]) has the same body
 /// and the same size.
 pub const LOD_REQUEST_FRAME_LEN: usize = FRAME_HEADER_LEN + 8 + 8 + 4;
+
+/// Exact size on the wire of a `LodRefsAboveRequest` frame
+/// ([`LodRefsAboveRequest`]), prefix included: a `LodRequest` body and four
+/// `f32` floors.
+pub const LOD_REFS_ABOVE_REQUEST_FRAME_LEN: usize = LOD_REQUEST_FRAME_LEN + 4 * 4;
+
+/// The longest request frame: a server reads a request stream to its end
+/// with this limit.
+pub const MAX_REQUEST_FRAME_LEN: usize = LOD_REFS_ABOVE_REQUEST_FRAME_LEN;
 
 /// Exact size on the wire of a successful [`ResponseHead`] frame, prefix included.
 pub const RESPONSE_HEAD_OK_FRAME_LEN: usize = FRAME_HEADER_LEN + 8 + 4 + 4;
@@ -66,11 +75,14 @@ pub enum MessageType {
     /// [`Message::LodRefsRequest`] (a [`LodRequest`] body), client -> server,
     /// request stream: the record, then its children's child tables.
     LodRefsRequest = 0x12,
+    /// [`LodRefsAboveRequest`], client -> server, request stream: the
+    /// record, then the child tables that reach their floors.
+    LodRefsAboveRequest = 0x13,
 }
 
 impl MessageType {
     /// Every message type.
-    pub const ALL: [MessageType; 8] = [
+    pub const ALL: [MessageType; 9] = [
         MessageType::Hello,
         MessageType::Welcome,
         MessageType::Error,
@@ -79,6 +91,7 @@ impl MessageType {
         MessageType::LodRequest,
         MessageType::ResponseHead,
         MessageType::LodRefsRequest,
+        MessageType::LodRefsAboveRequest,
     ];
 
     /// Parses a type byte.
@@ -92,6 +105,7 @@ impl MessageType {
             0x10 => MessageType::LodRequest,
             0x11 => MessageType::ResponseHead,
             0x12 => MessageType::LodRefsRequest,
+            0x13 => MessageType::LodRefsAboveRequest,
             _ => return None,
         })
     }
@@ -120,6 +134,7 @@ impl MessageType {
             MessageType::LodRequest => "lod_request",
             MessageType::ResponseHead => "response_head",
             MessageType::LodRefsRequest => "lod_refs_request",
+            MessageType::LodRefsAboveRequest => "lod_refs_above_request",
         }
     }
 }
@@ -141,6 +156,7 @@ pub fn encode_frame_into(msg: &Message, out: &mut Vec<u8>) -> Result<(), Protoco
         Message::LodRequest(m) => encode_body_frame(m, out),
         Message::ResponseHead(m) => encode_body_frame(m, out),
         Message::LodRefsRequest(m) => encode_body_frame_as(m, MessageType::LodRefsRequest, out),
+        Message::LodRefsAboveRequest(m) => encode_body_frame(m, out),
     }
 }
 
@@ -248,6 +264,9 @@ fn decode_body(msg_type: MessageType, body: &[u8]) -> Result<Message, ProtocolEr
         }
         MessageType::LodRefsRequest => {
             Message::LodRefsRequest(codec::decode_exact::<LodRequest, CONTROL>(body, msg_type)?)
+        }
+        MessageType::LodRefsAboveRequest => {
+            codec::decode_exact::<LodRefsAboveRequest, CONTROL>(body, msg_type)?.into()
         }
     };
     msg.validate()?;

@@ -134,6 +134,78 @@ pub struct LodRequest {
     pub size: u32,
 }
 
+/// The per-child error floors of a `LodRefsAboveRequest` (0x13,
+/// [`RequestKind::RecordAndRefsAbove`]), in metres: the server sends child
+/// `k`'s child table only when the largest `error` among that table's
+/// references is at least `floors[k]`, and marks it unknown (`0xff`)
+/// otherwise. Each floor is finite and at least 0, or +∞ (never sent). On
+/// the wire: four `f32` LE, kept here as their bits so that a kind compares
+/// and hashes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct ErrorFloors([u32; 4]);
+
+impl ErrorFloors {
+    /// The floors `floors` (metres, child order), if every one is at least
+    /// 0 (+∞ allowed; NaN and negative values are refused).
+    pub fn new(floors: [f32; 4]) -> Result<ErrorFloors, ProtocolError> {
+        let f = ErrorFloors(floors.map(f32::to_bits));
+        f.validate()?;
+        Ok(f)
+    }
+
+    /// The floors in metres, in the record's child order.
+    pub fn get(&self) -> [f32; 4] {
+        self.0.map(f32::from_bits)
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), ProtocolError> {
+        match self.get().into_iter().find(|f| f.is_nan() || *f < 0.0) {
+            None => Ok(()),
+            Some(f) => Err(ProtocolError::InvalidField {
+                field: "lod_refs_above_request.floors",
+                reason: format!("floor {f} is not a number at least 0"),
+            }),
+        }
+    }
+}
+
+/// Client -> server, alone on its own request stream (type 0x13): a
+/// [`LodRequest`] that also asks for the child tables of the record's
+/// children, but only those whose references' largest error reaches the
+/// child's floor ([`ErrorFloors`], docs/PROTOCOL.md §4.9).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct LodRefsAboveRequest {
+    /// Client-chosen id, unique among the connection's in-flight requests.
+    pub id: u64,
+    /// Byte offset of the record in the database file.
+    pub offset: u64,
+    /// Length of the record in bytes.
+    pub size: u32,
+    /// Per-child error floors of the child tables.
+    pub floors: ErrorFloors,
+}
+
+impl LodRefsAboveRequest {
+    /// `req` asking for the child tables above `floors`.
+    pub fn new(req: LodRequest, floors: ErrorFloors) -> LodRefsAboveRequest {
+        LodRefsAboveRequest {
+            id: req.id,
+            offset: req.offset,
+            size: req.size,
+            floors,
+        }
+    }
+
+    /// The record request it carries.
+    pub fn request(&self) -> LodRequest {
+        LodRequest {
+            id: self.id,
+            offset: self.offset,
+            size: self.size,
+        }
+    }
+}
+
 /// What a request stream asks for: the frame type that carries its
 /// [`LodRequest`] body.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -143,6 +215,10 @@ pub enum RequestKind {
     /// `LodRefsRequest` (0x12): the record's bytes, then the child tables of
     /// its children (at most [`MAX_REFS_TRAILER_LEN`] bytes).
     RecordAndRefs,
+    /// `LodRefsAboveRequest` (0x13): as `RecordAndRefs`, but a child's table
+    /// comes only when its references' largest error reaches the child's
+    /// floor.
+    RecordAndRefsAbove(ErrorFloors),
 }
 
 impl RequestKind {
@@ -151,6 +227,7 @@ impl RequestKind {
         match self {
             RequestKind::Record => MessageType::LodRequest,
             RequestKind::RecordAndRefs => MessageType::LodRefsRequest,
+            RequestKind::RecordAndRefsAbove(_) => MessageType::LodRefsAboveRequest,
         }
     }
 
@@ -159,7 +236,22 @@ impl RequestKind {
     pub const fn max_trailer_len(self) -> u32 {
         match self {
             RequestKind::Record => 0,
-            RequestKind::RecordAndRefs => MAX_REFS_TRAILER_LEN,
+            RequestKind::RecordAndRefs | RequestKind::RecordAndRefsAbove(_) => MAX_REFS_TRAILER_LEN,
+        }
+    }
+
+    /// Whether the response carries child tables after the record.
+    pub const fn has_refs(self) -> bool {
+        !matches!(self, RequestKind::Record)
+    }
+
+    /// The kind a client falls back to when the server does not know this
+    /// one (docs/PROTOCOL.md §7): 0x13 → 0x12 → 0x10.
+    pub const fn fallback(self) -> Option<RequestKind> {
+        match self {
+            RequestKind::RecordAndRefsAbove(_) => Some(RequestKind::RecordAndRefs),
+            RequestKind::RecordAndRefs => Some(RequestKind::Record),
+            RequestKind::Record => None,
         }
     }
 
@@ -168,6 +260,14 @@ impl RequestKind {
         match self {
             RequestKind::Record => Message::LodRequest(req),
             RequestKind::RecordAndRefs => Message::LodRefsRequest(req),
+            RequestKind::RecordAndRefsAbove(floors) => {
+                Message::LodRefsAboveRequest(LodRefsAboveRequest {
+                    id: req.id,
+                    offset: req.offset,
+                    size: req.size,
+                    floors,
+                })
+            }
         }
     }
 }
@@ -181,11 +281,11 @@ pub const MAX_REFS_TRAILER_LEN: u32 = 4 * (1 + 4 * 24);
 impl LodRequest {
     /// Encodes this request as one complete frame of `kind`: a `LodRequest`
     /// frame (as [`LodRequest::encode_frame`]) or a `LodRefsRequest` frame,
-    /// both [`crate::LOD_REQUEST_FRAME_LEN`] bytes.
+    /// both [`crate::LOD_REQUEST_FRAME_LEN`] bytes, or a
+    /// `LodRefsAboveRequest` frame
+    /// ([`crate::LOD_REFS_ABOVE_REQUEST_FRAME_LEN`] bytes).
     pub fn encode_frame_as(&self, kind: RequestKind) -> Result<Vec<u8>, ProtocolError> {
-        let mut out = Vec::new();
-        crate::frame::encode_body_frame_as(self, kind.msg_type(), &mut out)?;
-        Ok(out)
+        kind.message(*self).encode_frame()
     }
 }
 
@@ -341,6 +441,8 @@ pub enum Message {
     /// children ([`RequestKind::RecordAndRefs`]); type byte 0x12, the same
     /// body as [`Message::LodRequest`].
     LodRefsRequest(LodRequest),
+    /// See [`LodRefsAboveRequest`] ([`RequestKind::RecordAndRefsAbove`]).
+    LodRefsAboveRequest(LodRefsAboveRequest),
 }
 
 impl Message {
@@ -355,6 +457,7 @@ impl Message {
             Message::LodRequest(_) => MessageType::LodRequest,
             Message::ResponseHead(_) => MessageType::ResponseHead,
             Message::LodRefsRequest(_) => MessageType::LodRefsRequest,
+            Message::LodRefsAboveRequest(_) => MessageType::LodRefsAboveRequest,
         }
     }
 
@@ -369,6 +472,7 @@ impl Message {
             Message::LodRequest(m) => m.check(),
             Message::ResponseHead(m) => m.check(),
             Message::LodRefsRequest(m) => m.check(),
+            Message::LodRefsAboveRequest(m) => m.check(),
         }
     }
 
@@ -425,6 +529,7 @@ impl_wire_body! {
     Cancel => Cancel, |_| Ok(());
     LodRequest => LodRequest, |_| Ok(());
     ResponseHead => ResponseHead, ResponseHead::validate;
+    LodRefsAboveRequest => LodRefsAboveRequest, |m| m.floors.validate();
 }
 
 fn check_len(field: &'static str, len: usize, max: usize) -> Result<(), ProtocolError> {

@@ -23,20 +23,21 @@ use crate::message::{
 pub fn decode_request_stream(bytes: &[u8]) -> Result<LodRequest, ProtocolError> {
     match decode_stream(bytes, "on a request stream (expected lod_request)")? {
         (req, RequestKind::Record) => Ok(req),
-        (_, RequestKind::RecordAndRefs) => Err(ProtocolError::UnexpectedMessage {
-            got: RequestKind::RecordAndRefs.msg_type(),
+        (_, kind) => Err(ProtocolError::UnexpectedMessage {
+            got: kind.msg_type(),
             context: "on a request stream (expected lod_request)",
         }),
     }
 }
 
 /// Decodes the whole client side of a request stream (read to its end, at
-/// most [`crate::LOD_REQUEST_FRAME_LEN`] bytes): exactly one `LodRequest` or
-/// `LodRefsRequest` frame, with the kind of request it is.
+/// most [`crate::MAX_REQUEST_FRAME_LEN`] bytes): exactly one `LodRequest`,
+/// `LodRefsRequest` or `LodRefsAboveRequest` frame, with the kind of
+/// request it is.
 pub fn decode_any_request_stream(bytes: &[u8]) -> Result<(LodRequest, RequestKind), ProtocolError> {
     decode_stream(
         bytes,
-        "on a request stream (expected lod_request or lod_refs_request)",
+        "on a request stream (expected lod_request, lod_refs_request or lod_refs_above_request)",
     )
 }
 
@@ -49,6 +50,9 @@ fn decode_stream(
     let found = match dec.next_frame()? {
         Some(Message::LodRequest(req)) => (req, RequestKind::Record),
         Some(Message::LodRefsRequest(req)) => (req, RequestKind::RecordAndRefs),
+        Some(Message::LodRefsAboveRequest(r)) => {
+            (r.request(), RequestKind::RecordAndRefsAbove(r.floors))
+        }
         Some(other) => {
             return Err(ProtocolError::UnexpectedMessage {
                 got: other.msg_type(),
@@ -279,7 +283,7 @@ pub fn check_head_kind(
                 got: head.body_len,
             })
         }
-        RequestKind::RecordAndRefs => {
+        RequestKind::RecordAndRefs | RequestKind::RecordAndRefsAbove(_) => {
             let max = u64::from(request.size) + u64::from(MAX_REFS_TRAILER_LEN);
             if head.body_len < request.size || u64::from(head.body_len) > max {
                 Err(ProtocolError::BodyLengthOutOfRange {

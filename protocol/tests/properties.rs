@@ -28,6 +28,18 @@ fn limits() -> impl Strategy<Value = Limits> {
     })
 }
 
+/// A valid error floor: 0, +∞, or any finite `f32` at least 0.
+fn floor() -> impl Strategy<Value = f32> {
+    prop_oneof![
+        Just(0.0f32),
+        Just(f32::INFINITY),
+        (0.0f32..f32::MAX),
+        any::<f32>().prop_filter_map("finite, at least 0", |f| {
+            (f.is_finite() && f >= 0.0).then_some(f)
+        }),
+    ]
+}
+
 fn message() -> impl Strategy<Value = Message> {
     prop_oneof![
         (any::<u16>(), name(), name(), name()).prop_map(|(version, tenant, token, database)| {
@@ -62,6 +74,19 @@ fn message() -> impl Strategy<Value = Message> {
         (any::<u64>(), any::<u64>(), any::<u32>()).prop_map(|(id, offset, size)| {
             Message::LodRefsRequest(LodRequest { id, offset, size })
         }),
+        (
+            any::<u64>(),
+            any::<u64>(),
+            any::<u32>(),
+            [floor(), floor(), floor(), floor()]
+        )
+            .prop_map(|(id, offset, size, f)| {
+                let floors = ErrorFloors::new(f).expect("floors at least 0");
+                Message::LodRefsAboveRequest(LodRefsAboveRequest::new(
+                    LodRequest { id, offset, size },
+                    floors,
+                ))
+            }),
         (any::<u64>(), any::<u32>())
             .prop_map(|(id, len)| Message::ResponseHead(ResponseHead::ok(id, len))),
         (any::<u64>(), error_msg())

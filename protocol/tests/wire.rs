@@ -193,6 +193,107 @@ fn protocol_doc_shows_the_hello_bytes() {
     );
 }
 
+const REFS_ABOVE_BYTES: &str = "25 00 00 00  13  07 00 00 00 00 00 00 00  08 07 06 05 04 03 02 01  00 10 00 00  00 00 00 00  00 00 20 40  00 00 80 7f  00 00 80 3f";
+
+fn refs_above_example() -> (LodRequest, ErrorFloors) {
+    let req = LodRequest {
+        id: 7,
+        offset: 0x0102_0304_0506_0708,
+        size: 4096,
+    };
+    let floors = ErrorFloors::new([0.0, 2.5, f32::INFINITY, 1.0]).expect("valid floors");
+    (req, floors)
+}
+
+#[test]
+fn lod_refs_above_request_bytes() {
+    let (req, floors) = refs_above_example();
+    // The LodRequest body, then the four floors as f32 LE, under 0x13.
+    let kind = RequestKind::RecordAndRefsAbove(floors);
+    assert_wire(
+        Message::LodRefsAboveRequest(LodRefsAboveRequest::new(req, floors)),
+        REFS_ABOVE_BYTES,
+    );
+    let bytes = req.encode_frame_as(kind).unwrap();
+    assert_eq!(bytes, hex(REFS_ABOVE_BYTES));
+    assert_eq!(bytes.len(), LOD_REFS_ABOVE_REQUEST_FRAME_LEN);
+    assert_eq!(MAX_REQUEST_FRAME_LEN, 41);
+    assert_eq!(floors.get(), [0.0, 2.5, f32::INFINITY, 1.0]);
+    assert_eq!(
+        MessageType::from_u8(0x13),
+        Some(MessageType::LodRefsAboveRequest)
+    );
+    assert_eq!(
+        MessageType::LodRefsAboveRequest.as_str(),
+        "lod_refs_above_request"
+    );
+    assert_eq!(decode_any_request_stream(&bytes), Ok((req, kind)));
+    assert_eq!(kind.max_trailer_len(), MAX_REFS_TRAILER_LEN);
+    assert_eq!(kind.fallback(), Some(RequestKind::RecordAndRefs));
+    assert_eq!(
+        RequestKind::RecordAndRefs.fallback(),
+        Some(RequestKind::Record)
+    );
+    assert_eq!(RequestKind::Record.fallback(), None);
+    // A server that serves only LodRequest refuses it as it refuses 0x12.
+    assert_eq!(
+        decode_request_stream(&bytes),
+        Err(ProtocolError::UnexpectedMessage {
+            got: MessageType::LodRefsAboveRequest,
+            context: "on a request stream (expected lod_request)",
+        })
+    );
+}
+
+#[test]
+fn a_floor_that_is_nan_or_negative_is_refused_both_ways() {
+    for bad in [f32::NAN, -1.0, f32::NEG_INFINITY] {
+        assert!(ErrorFloors::new([0.0, bad, 1.0, 1.0]).is_err(), "{bad}");
+        // Decoded from the wire: the frame is malformed (an invalid field).
+        let mut bytes = hex(REFS_ABOVE_BYTES);
+        let at = LOD_REQUEST_FRAME_LEN + 4;
+        bytes[at..at + 4].copy_from_slice(&bad.to_le_bytes());
+        let err = decode_any_request_stream(&bytes).expect_err("a bad floor decodes");
+        assert!(
+            matches!(err, ProtocolError::InvalidField { field, .. } if field == "lod_refs_above_request.floors"),
+            "{err:?}"
+        );
+        assert_eq!(err.code(), ErrorCode::Malformed);
+    }
+    // +∞ and 0 (and −0) are floors.
+    assert!(ErrorFloors::new([0.0, -0.0, f32::INFINITY, f32::MAX]).is_ok());
+}
+
+/// Asserts that the section of docs/PROTOCOL.md under `heading` shows
+/// `bytes` on one line, as the document spells frames: single spaces
+/// between bytes, double spaces between fields.
+fn assert_doc_shows(heading: &str, bytes: &[u8]) {
+    let doc = include_str!("../../docs/PROTOCOL.md");
+    let section = doc
+        .split(heading)
+        .nth(1)
+        .and_then(|s| s.split("\n## ").next())
+        .unwrap_or_else(|| panic!("{heading} in docs/PROTOCOL.md"));
+    let normalised: Vec<String> = section
+        .lines()
+        .map(|l| l.split_whitespace().collect::<Vec<_>>().join(" "))
+        .collect();
+    let want: Vec<String> = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    assert!(
+        normalised.iter().any(|l| *l == want.join(" ")),
+        "docs/PROTOCOL.md {heading} must show the example {want:?}"
+    );
+}
+
+#[test]
+fn protocol_doc_shows_the_lod_refs_above_request_bytes() {
+    let (req, floors) = refs_above_example();
+    let bytes = req
+        .encode_frame_as(RequestKind::RecordAndRefsAbove(floors))
+        .unwrap();
+    assert_doc_shows("### 4.9 `LodRefsAboveRequest` (0x13)", &bytes);
+}
+
 #[test]
 fn protocol_doc_shows_the_lod_refs_request_bytes() {
     let req = LodRequest {
@@ -201,23 +302,7 @@ fn protocol_doc_shows_the_lod_refs_request_bytes() {
         size: 4096,
     };
     let bytes = Message::LodRefsRequest(req).encode_frame().unwrap();
-    // As §4.8 spells it: `15 00 00 00  12  07 00 ...`, single spaces
-    // between bytes, double spaces between fields.
-    let doc = include_str!("../../docs/PROTOCOL.md");
-    let section = doc
-        .split("### 4.8 `LodRefsRequest` (0x12)")
-        .nth(1)
-        .and_then(|s| s.split("\n## ").next())
-        .expect("§4.8 in docs/PROTOCOL.md");
-    let normalised: Vec<String> = section
-        .lines()
-        .map(|l| l.split_whitespace().collect::<Vec<_>>().join(" "))
-        .collect();
-    let want: Vec<String> = bytes.iter().map(|b| format!("{b:02x}")).collect();
-    assert!(
-        normalised.iter().any(|l| *l == want.join(" ")),
-        "docs/PROTOCOL.md §4.8 must show the LodRefsRequest example {want:?}"
-    );
+    assert_doc_shows("### 4.8 `LodRefsRequest` (0x12)", &bytes);
 }
 
 #[test]

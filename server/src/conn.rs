@@ -15,8 +15,8 @@ use futures_util::FutureExt;
 use planet_core::format::{child_tables_for, record_checksum_ok, ChildRef, SUPERBLOCK_LEN};
 use planet_protocol::{
     decode_any_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight,
-    Limits, LodRequest, MessageType, ProtocolError, RequestKind, ResponseHead, ServerEvent,
-    ServerSession, Welcome, LOD_REQUEST_FRAME_LEN,
+    Limits, LodRequest, ProtocolError, RequestKind, ResponseHead, ServerEvent, ServerSession,
+    Welcome, MAX_REQUEST_FRAME_LEN,
 };
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
@@ -659,7 +659,12 @@ fn validate(ctx: &ConnCtx, est: &Established, req: &LodRequest) -> Result<(), Er
 /// record area, over `max_record_size`): a refs request never makes the
 /// server read what it would refuse to serve. A record whose own references
 /// do not parse (which the client refuses too) gets an empty trailer.
-fn child_tables(est: &Established, record: &[u8], max_record_size: u32) -> Vec<u8> {
+fn child_tables(
+    est: &Established,
+    record: &[u8],
+    max_record_size: u32,
+    floors: Option<[f32; 4]>,
+) -> Vec<u8> {
     let db = &est.db;
     let read = |c: &ChildRef| {
         let in_area = c.offset >= SUPERBLOCK_LEN as u64
@@ -678,7 +683,7 @@ fn child_tables(est: &Established, record: &[u8], max_record_size: u32) -> Vec<u
             })
             .ok()
     };
-    child_tables_for(record, Some(db.len()), read).unwrap_or_default()
+    child_tables_for(record, Some(db.len()), floors, read).unwrap_or_default()
 }
 
 async fn serve_request(
@@ -690,7 +695,7 @@ async fn serve_request(
     let metrics = &ctx.shared.metrics;
     let read = tokio::time::timeout(
         REQUEST_READ_TIMEOUT,
-        recv.read_to_end(LOD_REQUEST_FRAME_LEN),
+        recv.read_to_end(MAX_REQUEST_FRAME_LEN),
     );
     let bytes = match read.await {
         Ok(Ok(b)) => b,
@@ -722,15 +727,15 @@ async fn serve_request(
             return;
         }
     };
-    // A `LodRequest` or a `LodRefsRequest`: the same body, the same checks;
-    // the latter's response adds the children's child tables. With child
-    // tables turned off, 0x12 is an unknown frame, as on a server that
-    // predates it (id 0; docs/PROTOCOL.md §7), so clients fall back.
+    // A `LodRequest`, a `LodRefsRequest` or a `LodRefsAboveRequest`: the
+    // same record, the same checks; the latter two's responses add the
+    // children's child tables (above the request's floors for 0x13). With
+    // child tables turned off, 0x12 and 0x13 are unknown frames, as on a
+    // server that predates them (id 0; docs/PROTOCOL.md §7), so clients
+    // fall back.
     let decoded = decode_any_request_stream(&bytes).and_then(|(req, kind)| {
-        if kind == RequestKind::RecordAndRefs && !ctx.shared.cfg.child_tables {
-            Err(ProtocolError::UnknownMessageType(
-                MessageType::LodRefsRequest as u8,
-            ))
+        if kind.has_refs() && !ctx.shared.cfg.child_tables {
+            Err(ProtocolError::UnknownMessageType(kind.msg_type().as_u8()))
         } else {
             Ok((req, kind))
         }
@@ -889,7 +894,15 @@ async fn serve_request(
     }
     let trailer = match kind {
         RequestKind::Record => Vec::new(),
-        RequestKind::RecordAndRefs => child_tables(est, &body, ctx.shared.cfg.max_record_size),
+        RequestKind::RecordAndRefs => {
+            child_tables(est, &body, ctx.shared.cfg.max_record_size, None)
+        }
+        RequestKind::RecordAndRefsAbove(floors) => child_tables(
+            est,
+            &body,
+            ctx.shared.cfg.max_record_size,
+            Some(floors.get()),
+        ),
     };
     refund(reserved.saturating_sub(size + trailer.len() as u64));
     // `trailer.len() <= MAX_REFS_TRAILER_LEN` and `size <= max_record_size`.

@@ -14,7 +14,7 @@ use planet_core::format::{
     CHILD_TABLE_UNKNOWN,
 };
 use planet_core::{BlockId, Datum, Face};
-use planet_protocol::{ErrorCode, MAX_REFS_TRAILER_LEN};
+use planet_protocol::{ErrorCode, ErrorFloors, MAX_REFS_TRAILER_LEN};
 use planet_server::{Server, ServerConfig};
 use planet_session::net::{Connection, NetError, NetEvent, Session, SessionConfig};
 
@@ -204,6 +204,96 @@ async fn refs_of_a_record_are_its_childrens_own_references() {
             }
         }
     }
+    conn.close();
+    h.shutdown().await;
+}
+
+/// `LodRefsAboveRequest` (docs/PROTOCOL.md §4.9): a child's table of four
+/// references comes only if their largest error reaches the child's
+/// floor, and is unknown (one byte) otherwise; a leaf's empty table comes
+/// whatever its floor.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tables_under_their_floors_are_left_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let h = three_level_server(dir.path(), false).await;
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    let file_size = welcome.file_size;
+    let header = Header::decode(&welcome.header, Some(file_size)).unwrap();
+    let root = header.elevation.root_records[0];
+    let size = root.size as usize;
+    let all = conn.fetch_refs(1, root.offset, root.size).await.unwrap();
+    let all_tables = parse_child_tables(&all[size..], 4, Some(file_size)).unwrap();
+    // Children 0 and 1 hold four leaves of errors 1, 2, 3 and 4.
+    let largest: Vec<Option<f32>> = all_tables
+        .iter()
+        .map(|t| {
+            t.as_ref()
+                .and_then(|t| t.iter().map(|r| r.error).reduce(f32::max))
+        })
+        .collect();
+    assert_eq!(largest, [Some(4.0), Some(4.0), None, None]);
+    let floors = ErrorFloors::new([4.0, 4.5, f32::INFINITY, 0.0]).unwrap();
+    let some = conn
+        .fetch_refs_above(2, root.offset, root.size, floors)
+        .await
+        .unwrap();
+    assert_eq!(&some[..size], &all[..size], "the record part is the record");
+    let tables = parse_child_tables(&some[size..], 4, Some(file_size)).unwrap();
+    assert_eq!(tables[0], all_tables[0], "4 reaches 4");
+    assert_eq!(tables[1], None, "4 is under 4.5");
+    assert_eq!(tables[2..], [Some(vec![]), Some(vec![])], "leaves");
+    assert_eq!(some.len(), all.len() - 4 * 24);
+    assert_eq!(some[size + 1 + 4 * 24], CHILD_TABLE_UNKNOWN);
+    // Floors of 0 are a LodRefsRequest.
+    let zero = ErrorFloors::new([0.0; 4]).unwrap();
+    let again = conn
+        .fetch_refs_above(3, root.offset, root.size, zero)
+        .await
+        .unwrap();
+    assert_eq!(again, all);
+    assert!(!conn.table_floors_refused() && !conn.child_tables_refused());
+    conn.close();
+    h.shutdown().await;
+}
+
+/// A server with child tables turned off refuses 0x13 as it does 0x12: the
+/// session asks again as a `LodRefsRequest`, then as a `LodRequest`, and
+/// sends later ones as `LodRequest` straight away (docs/PROTOCOL.md §7).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refused_floors_fall_back_to_plain_requests() {
+    let dir = tempfile::tempdir().unwrap();
+    let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
+    let (conn, welcome) = connect(&h, acme()).await.unwrap();
+    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let root = header.elevation.root_records[0];
+    let floors = ErrorFloors::new([0.0; 4]).unwrap();
+    let got = conn
+        .fetch_refs_above(10, root.offset, root.size, floors)
+        .await
+        .unwrap();
+    let record = conn.fetch(11, root.offset, root.size).await.unwrap();
+    assert_eq!(got, record, "the record alone");
+    assert!(conn.table_floors_refused() && conn.child_tables_refused());
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 2.0
+    })
+    .await;
+    let refused = metric(&text, "planet_requests_total", &[("outcome", "invalid")]);
+    assert_eq!(refused, 2.0, "0x13, then 0x12");
+    let got = conn
+        .fetch_refs_above(12, root.offset, root.size, floors)
+        .await
+        .unwrap();
+    assert_eq!(got, record);
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 3.0
+    })
+    .await;
+    assert_eq!(
+        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
+        refused,
+        "later requests are LodRequests from the start"
+    );
     conn.close();
     h.shutdown().await;
 }

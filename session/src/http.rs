@@ -475,9 +475,10 @@ async fn run_http(
                 let user_closed = serve_requests(
                     &mut cmd_rx,
                     &ev,
-                    // `refs` is ignored: a byte range is the record alone,
-                    // so `request_refs` is `request` on this transport.
-                    move |_id, offset, size, _refs| {
+                    // The kind is ignored: a byte range is the record
+                    // alone, so `request_refs` (and `request_refs_above`)
+                    // is `request` on this transport.
+                    move |_id, offset, size, _kind| {
                         let c = c.clone();
                         async move { c.fetch(offset, size).await }
                     },

@@ -3,13 +3,15 @@
 //! - [`Connection`]: one QUIC connection: control-stream handshake, then
 //!   [`Connection::fetch`] per record (one bidirectional stream each), or
 //!   [`Connection::fetch_refs`] for a record and its children's child
-//!   tables (`LodRefsRequest`, docs/PROTOCOL.md §4.8).
+//!   tables (`LodRefsRequest`, docs/PROTOCOL.md §4.8), or
+//!   [`Connection::fetch_refs_above`] for those that reach their floors
+//!   (`LodRefsAboveRequest`, §4.9).
 //!   Dropping a fetch future, or [`FetchHandle::cancel`], stops the stream
 //!   with `STREAM_CANCELLED` so the server stops sending.
 //! - [`Session`] / [`SessionHandle`]: a reconnecting wrapper running on a
 //!   tokio runtime, driven from synchronous code (e.g. a per-frame loop)
-//!   through non-blocking channels: `request`, `request_refs`, `cancel`,
-//!   `poll_events`.
+//!   through non-blocking channels: `request`, `request_refs`,
+//!   `request_refs_above`, `cancel`, `poll_events`.
 //!
 //! TLS configurations come from [`crate::tls`].
 
@@ -21,8 +23,8 @@ use std::time::Duration;
 
 use planet_client::TransportError;
 use planet_protocol::{
-    quic, ClientHandshake, ErrorCode, ErrorMsg, FrameDecoder, HandshakeOutcome, Hello, LodRequest,
-    Message, ProtocolError, RequestKind, Response, ResponseDecoder, Welcome,
+    quic, ClientHandshake, ErrorCode, ErrorFloors, ErrorMsg, FrameDecoder, HandshakeOutcome, Hello,
+    LodRequest, Message, ProtocolError, RequestKind, Response, ResponseDecoder, Welcome,
 };
 use quinn::VarInt;
 use tokio::sync::{mpsc, oneshot, watch};
@@ -243,6 +245,8 @@ struct Inner {
     // predates 0x12 or has it turned off. Every request is a `LodRequest`
     // from then on.
     refs_refused: AtomicBool,
+    /// The server answered a `LodRefsAboveRequest` (0x13) as unknown.
+    floors_refused: AtomicBool,
 }
 
 impl Drop for Inner {
@@ -395,6 +399,7 @@ impl Connection {
             zero_rtt,
             zero_rtt_refused: refused,
             refs_refused: AtomicBool::new(false),
+            floors_refused: AtomicBool::new(false),
         };
         Ok((
             Connection {
@@ -428,6 +433,13 @@ impl Connection {
     /// `LodRequest` and returns the record alone.
     pub fn child_tables_refused(&self) -> bool {
         self.inner.refs_refused.load(Ordering::Relaxed)
+    }
+
+    /// Whether the server answered a `LodRefsAboveRequest` (0x13) as an
+    /// unknown frame: later ones on this connection are sent as
+    /// `LodRefsRequest` (or `LodRequest`, [`Connection::child_tables_refused`]).
+    pub fn table_floors_refused(&self) -> bool {
+        self.inner.floors_refused.load(Ordering::Relaxed)
     }
 
     /// The server's address.
@@ -500,11 +512,42 @@ impl Connection {
         offset: u64,
         size: u32,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
-        let kind = if self.child_tables_refused() {
-            RequestKind::Record
-        } else {
-            RequestKind::RecordAndRefs
-        };
+        self.fetch_as(id, offset, size, RequestKind::RecordAndRefs)
+    }
+
+    /// As [`Connection::fetch_refs`], with a `LodRefsAboveRequest`
+    /// (docs/PROTOCOL.md §4.9): child `k`'s table comes only if its
+    /// references' largest error reaches `floors`' `k`-th floor, and is
+    /// marked unknown (`0xff`) otherwise. A server that does not answer
+    /// 0x13 gets the request again as a `LodRefsRequest`, and so does every
+    /// later one on this connection
+    /// ([`Connection::table_floors_refused`]); one that does not answer
+    /// 0x12 either, as a `LodRequest`.
+    pub fn fetch_refs_above(
+        &self,
+        id: u64,
+        offset: u64,
+        size: u32,
+        floors: ErrorFloors,
+    ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
+        self.fetch_as(id, offset, size, RequestKind::RecordAndRefsAbove(floors))
+    }
+
+    /// A request of `kind`, or of the kind it falls back to when this
+    /// connection's server refused it before.
+    fn fetch_as(
+        &self,
+        id: u64,
+        offset: u64,
+        size: u32,
+        mut kind: RequestKind,
+    ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
+        if matches!(kind, RequestKind::RecordAndRefsAbove(_)) && self.table_floors_refused() {
+            kind = RequestKind::RecordAndRefs;
+        }
+        if kind == RequestKind::RecordAndRefs && self.child_tables_refused() {
+            kind = RequestKind::Record;
+        }
         self.fetch_kind(id, offset, size, kind)
     }
 
@@ -522,14 +565,28 @@ impl Connection {
         let this = self.clone();
         async move {
             let fut = async {
-                match read_response(opened, req, kind).await {
-                    Err(e) if kind == RequestKind::RecordAndRefs && refs_unknown(&e, req.id) => {
-                        this.inner.refs_refused.store(true, Ordering::Relaxed);
-                        tracing::debug!("server does not answer LodRefsRequest; using LodRequest");
-                        let again = this.enqueue(&req, RequestKind::Record);
-                        read_response(again, req, RequestKind::Record).await
+                let (mut opened, mut kind) = (opened, kind);
+                loop {
+                    match read_response(opened, req, kind).await {
+                        Err(e) if kind.has_refs() && refs_unknown(&e, req.id) => {
+                            let refused = match kind {
+                                RequestKind::RecordAndRefsAbove(_) => &this.inner.floors_refused,
+                                _ => &this.inner.refs_refused,
+                            };
+                            refused.store(true, Ordering::Relaxed);
+                            let Some(next) = kind.fallback() else {
+                                return Err(e);
+                            };
+                            tracing::debug!(
+                                refused = %kind.msg_type(),
+                                using = %next.msg_type(),
+                                "server does not answer a request type; falling back"
+                            );
+                            kind = next;
+                            opened = this.enqueue(&req, kind);
+                        }
+                        r => return r,
                     }
-                    r => r,
                 }
             };
             let r = match this.inner.fetch_timeout {
@@ -567,8 +624,9 @@ impl Connection {
     }
 }
 
-/// Whether `e`, the answer to a well-formed `LodRefsRequest` of id `id`,
-/// says the server does not know 0x12: an error head with id 0 (a server
+/// Whether `e`, the answer to a well-formed `LodRefsRequest` (or
+/// `LodRefsAboveRequest`) of id `id`, says the server does not know 0x12
+/// (0x13): an error head with id 0 (a server
 /// answers id 0 only to a request stream it cannot decode, §5.2), which the
 /// response decoder reports as an id mismatch, or `unknown_message` itself
 /// when the request's id was 0.
@@ -852,12 +910,13 @@ impl SessionConfig {
 }
 
 pub(crate) enum Cmd {
-    /// `refs`: a `LodRefsRequest` (QUIC; the HTTP transport ignores it).
+    /// `kind`: with child tables or not (QUIC; the HTTP transport sends
+    /// every kind as a plain byte range).
     Request {
         id: u64,
         offset: u64,
         size: u32,
-        refs: bool,
+        kind: RequestKind,
     },
     Cancel {
         id: u64,
@@ -937,7 +996,7 @@ impl SessionHandle {
             id,
             offset,
             size,
-            refs: false,
+            kind: RequestKind::Record,
         });
     }
 
@@ -956,7 +1015,25 @@ impl SessionHandle {
             id,
             offset,
             size,
-            refs: true,
+            kind: RequestKind::RecordAndRefs,
+        });
+    }
+
+    /// As [`SessionHandle::request_refs`], but child `k`'s table comes only
+    /// if its references' largest error reaches `floors[k]` (metres;
+    /// `LodRefsAboveRequest`, docs/PROTOCOL.md §4.9); a table left out is
+    /// marked unknown (`0xff`). A floor that is NaN or negative asks for
+    /// that table whatever its errors. A server that predates 0x13 gets the
+    /// request as a `LodRefsRequest` ([`Connection::fetch_refs_above`]).
+    pub fn request_refs_above(&self, id: u64, offset: u64, size: u32, floors: [f32; 4]) {
+        let floors = floors.map(|f| if f >= 0.0 { f } else { 0.0 });
+        let kind = ErrorFloors::new(floors)
+            .map_or(RequestKind::RecordAndRefs, RequestKind::RecordAndRefsAbove);
+        let _ = self.cmd.send(Cmd::Request {
+            id,
+            offset,
+            size,
+            kind,
         });
     }
 
@@ -1076,14 +1153,7 @@ async fn run_session(
                     &ev,
                     // Called in the order of the requests: each takes its
                     // place in the connection's order at once.
-                    move |id, offset, size, refs| {
-                        let kind = if refs {
-                            RequestKind::RecordAndRefs
-                        } else {
-                            RequestKind::Record
-                        };
-                        c.fetch_kind(id, offset, size, kind)
-                    },
+                    move |id, offset, size, kind| c.fetch_as(id, offset, size, kind),
                     conn.closed(),
                 )
                 .await;
@@ -1134,7 +1204,8 @@ pub(crate) async fn while_disconnected<F: std::future::Future>(
 }
 
 /// Serves requests on one connection, one task per request made by
-/// `fetch(id, offset, size, refs)` (`refs`: [`SessionHandle::request_refs`]),
+/// `fetch(id, offset, size, kind)` (`kind`: [`SessionHandle::request_refs`]
+/// and [`SessionHandle::request_refs_above`] ask for child tables),
 /// until the user closes the session (`true`) or the connection is lost
 /// (`false`): `closed` completes, or a request fails with a connection error
 /// (an HTTP `412`, a reset connection). Shared by the QUIC and HTTP sessions.
@@ -1145,7 +1216,7 @@ pub(crate) async fn serve_requests<Fetch, Fut>(
     closed: impl std::future::Future<Output = NetError>,
 ) -> bool
 where
-    Fetch: Fn(u64, u64, u32, bool) -> Fut,
+    Fetch: Fn(u64, u64, u32, RequestKind) -> Fut,
     Fut: std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static,
 {
     let mut tasks: JoinSet<(u64, Result<Vec<u8>, NetError>)> = JoinSet::new();
@@ -1164,7 +1235,7 @@ where
         tokio::select! {
             c = cmd_rx.recv() => match c {
                 None | Some(Cmd::Close) => break true,
-                Some(Cmd::Request { id, offset, size, refs }) => {
+                Some(Cmd::Request { id, offset, size, kind }) => {
                     if pending.contains_key(&id) {
                         let _ = ev.send(NetEvent::Failed {
                             id,
@@ -1175,7 +1246,7 @@ where
                         });
                         continue;
                     }
-                    let f = fetch(id, offset, size, refs);
+                    let f = fetch(id, offset, size, kind);
                     let h = tasks.spawn(async move { (id, f.await) });
                     pending.insert(id, h);
                 }

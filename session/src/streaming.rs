@@ -175,11 +175,12 @@ impl StreamingClient {
         }
         let out = self.client.frame(camera, dt);
         for s in &out.send {
-            if s.refs {
-                self.session
-                    .request_refs(s.id, s.record.offset, s.record.size);
-            } else {
-                self.session.request(s.id, s.record.offset, s.record.size);
+            match s.refs {
+                Some(floors) => {
+                    self.session
+                        .request_refs_above(s.id, s.record.offset, s.record.size, floors)
+                }
+                None => self.session.request(s.id, s.record.offset, s.record.size),
             }
         }
         self.counters.requests += out.send.len() as u64;

@@ -12,7 +12,8 @@ use planet_core::format::{Header, Superblock, SUPERBLOCK_LEN};
 use planet_core::{codec, format};
 use planet_preprocess::crs::{Crs, GeoKeys};
 use planet_protocol::{
-    decode_any_request_stream, decode_request_stream, FrameDecoder, LodRequest, ResponseDecoder,
+    decode_any_request_stream, decode_request_stream, ErrorFloors, FrameDecoder, LodRequest,
+    RequestKind, ResponseDecoder,
 };
 
 /// The CRC-32 (IEEE) of the database format, used to repair inputs so the
@@ -40,7 +41,13 @@ pub fn protocol_frames(data: &[u8]) {
         offset: 64,
         size: 100,
     };
-    for mut resp in [ResponseDecoder::new(req), ResponseDecoder::with_refs(req)] {
+    let above = ErrorFloors::new([0.0, 1.5, f32::INFINITY, 0.0])
+        .map_or(RequestKind::RecordAndRefs, RequestKind::RecordAndRefsAbove);
+    for mut resp in [
+        ResponseDecoder::new(req),
+        ResponseDecoder::with_refs(req),
+        ResponseDecoder::for_kind(req, above),
+    ] {
         let _ = resp.push(&data[..cut]);
         let _ = resp.push(&data[cut..]);
         let _ = resp.finish();

@@ -268,7 +268,7 @@ pub struct FakeServer {
     pub latency_frames: u64,
     /// Record offsets to corrupt once (a byte flipped in the payload).
     pub corrupt_once: HashSet<u64>,
-    pending: Vec<(u64, u64, ChildRef, bool)>,
+    pending: Vec<(u64, u64, ChildRef, Option<[f32; 4]>)>,
     now: u64,
     /// Every request ever sent, in order.
     pub log: Vec<Outgoing>,
@@ -306,13 +306,14 @@ impl FakeServer {
         due.into_iter()
             .filter_map(|(_, id, r, refs)| {
                 let mut bytes = db.read(&r)?;
-                // A `LodRefsRequest`: the child tables after the record,
-                // as planet-server answers it.
-                let tables = refs
-                    .then(|| {
-                        planet_core::format::child_tables_for(&bytes, None, |c| db.read(c)).ok()
+                // A `LodRefsAboveRequest`: the child tables that reach
+                // their floors after the record, as planet-server answers it.
+                let tables = refs.and_then(|floors| {
+                    planet_core::format::child_tables_for(&bytes, None, Some(floors), |c| {
+                        db.read(c)
                     })
-                    .flatten();
+                    .ok()
+                });
                 if self.corrupt_once.remove(&r.offset) {
                     let k = bytes.len() / 2;
                     bytes[k] ^= 0x5a;
