@@ -240,7 +240,7 @@ impl Lookahead {
 
 /// The error floor of a child's table is this fraction of the error that
 /// projects to one tolerance at the child's ball in the view of the
-/// request's arrival ([`wants_tables`]), brought closer by as far as the
+/// request's arrival (`wants_tables`), brought closer by as far as the
 /// camera can come while the table is kept: the child's split is tested
 /// with its own, tighter bounds (not always farther than that ball).
 pub const TABLE_FLOOR_MARGIN: f64 = 0.5;
