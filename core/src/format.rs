@@ -754,13 +754,9 @@ pub fn child_tables_for<B: AsRef<[u8]>>(
             let refs = (b.len() == c.size as usize && record_checksum_ok(b))
                 .then(|| record_child_refs(b, file_len).ok())
                 .flatten()?;
-            let largest = refs
-                .iter()
-                .map(|r| r.error)
-                .fold(f32::NEG_INFINITY, f32::max);
-            let floor = floors.and_then(|f| f.get(k).copied());
-            match floor {
-                Some(f) if !refs.is_empty() && largest < f => None,
+            // Only a request with floors pays for comparing the errors.
+            match floors.and_then(|f| f.get(k).copied()) {
+                Some(f) if !refs.is_empty() && refs.iter().all(|r| r.error < f) => None,
                 _ => Some(refs),
             }
         })

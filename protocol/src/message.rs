@@ -187,7 +187,7 @@ pub struct LodRefsAboveRequest {
 
 impl LodRefsAboveRequest {
     /// `req` asking for the child tables above `floors`.
-    pub fn new(req: LodRequest, floors: ErrorFloors) -> LodRefsAboveRequest {
+    pub const fn new(req: LodRequest, floors: ErrorFloors) -> LodRefsAboveRequest {
         LodRefsAboveRequest {
             id: req.id,
             offset: req.offset,
@@ -261,12 +261,7 @@ impl RequestKind {
             RequestKind::Record => Message::LodRequest(req),
             RequestKind::RecordAndRefs => Message::LodRefsRequest(req),
             RequestKind::RecordAndRefsAbove(floors) => {
-                Message::LodRefsAboveRequest(LodRefsAboveRequest {
-                    id: req.id,
-                    offset: req.offset,
-                    size: req.size,
-                    floors,
-                })
+                Message::LodRefsAboveRequest(LodRefsAboveRequest::new(req, floors))
             }
         }
     }
