@@ -91,7 +91,7 @@ pub enum TrajectoryError {
 
 /// The built-in trajectories: each name with `bench/trajectories/NAME.txt`,
 /// compiled in.
-const BUILTINS: [(&str, &str); 10] = [
+const BUILTINS: [(&str, &str); 11] = [
     (
         "rainier",
         include_str!("../../bench/trajectories/rainier.txt"),
@@ -129,6 +129,10 @@ const BUILTINS: [(&str, &str); 10] = [
         "circle-rainier",
         include_str!("../../bench/trajectories/circle-rainier.txt"),
     ),
+    (
+        "cross-rainier",
+        include_str!("../../bench/trajectories/cross-rainier.txt"),
+    ),
 ];
 
 /// Names accepted by [`Trajectory::builtin`].
@@ -146,7 +150,8 @@ pub const BUILTIN_NAMES: [&str; BUILTINS.len()] = {
 /// `planet-view render`): every name of [`BUILTIN_NAMES`] (a test checks
 /// it), or a file.
 pub const TRAJECTORY_HELP: &str = "Built-in trajectory (rainier, everest, orbit, static-low, \
-    low-pass, glide-rainier, corner-pass, khumbu, edge-pass, circle-rainier) or a trajectory file";
+    low-pass, glide-rainier, corner-pass, khumbu, edge-pass, circle-rainier, cross-rainier) or a \
+    trajectory file";
 
 /// Mount Rainier summit (degrees).
 pub const RAINIER: (f64, f64) = (46.853, -121.760);
@@ -386,7 +391,10 @@ mod tests {
         );
         let e = Trajectory::from_spec("/nonexistent/nope.txt").unwrap_err();
         assert!(matches!(e, TrajectoryError::NotFound { .. }), "{e}");
-        assert!(e.to_string().contains("edge-pass, circle-rainier"), "{e}");
+        assert!(
+            e.to_string().contains("circle-rainier, cross-rainier"),
+            "{e}"
+        );
         let dir = std::env::temp_dir().join(format!("traj-spec-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let file = dir.join("t.txt");
