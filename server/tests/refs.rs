@@ -111,6 +111,14 @@ async fn three_level_server_with(
     Server::start(cfg).await.unwrap()
 }
 
+/// Connects to `h` as `acme` and decodes its database's header: the
+/// connection, the database file's size and the header.
+async fn open(h: &planet_server::ServerHandle) -> (Connection, u64, Header) {
+    let (conn, welcome) = connect(h, acme()).await.unwrap();
+    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    (conn, welcome.file_size, header)
+}
+
 fn server_code(r: Result<Vec<u8>, NetError>) -> ErrorCode {
     match r {
         Err(NetError::Server(e)) => e.code,
@@ -171,9 +179,7 @@ async fn check_refs(
 async fn refs_of_a_record_are_its_childrens_own_references() {
     let dir = tempfile::tempdir().unwrap();
     let h = three_level_server(dir.path(), false).await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let file_size = welcome.file_size;
-    let header = Header::decode(&welcome.header, Some(file_size)).unwrap();
+    let (conn, file_size, header) = open(&h).await;
     let mut id = 0;
     for root in &header.elevation.root_records {
         let (n, tables) = check_refs(&conn, file_size, root, &mut id).await;
@@ -216,9 +222,7 @@ async fn refs_of_a_record_are_its_childrens_own_references() {
 async fn tables_under_their_floors_are_left_out() {
     let dir = tempfile::tempdir().unwrap();
     let h = three_level_server(dir.path(), false).await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let file_size = welcome.file_size;
-    let header = Header::decode(&welcome.header, Some(file_size)).unwrap();
+    let (conn, file_size, header) = open(&h).await;
     let root = header.elevation.root_records[0];
     let size = root.size as usize;
     let all = conn.fetch_refs(1, root.offset, root.size).await.unwrap();
@@ -263,8 +267,7 @@ async fn tables_under_their_floors_are_left_out() {
 async fn refused_floors_fall_back_to_plain_requests() {
     let dir = tempfile::tempdir().unwrap();
     let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let (conn, _, header) = open(&h).await;
     let root = header.elevation.root_records[0];
     let floors = ErrorFloors::new([0.0; 4]).unwrap();
     let got = conn
@@ -314,8 +317,7 @@ async fn tables_of(conn: &Connection, file_size: u64, r: &ChildRef) -> Vec<Child
 async fn a_server_without_child_tables_gets_plain_requests() {
     let dir = tempfile::tempdir().unwrap();
     let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let (conn, _, header) = open(&h).await;
     let roots = header.elevation.root_records;
     assert!(!conn.child_tables_refused());
     // Six refs requests in flight when the first refusal comes back.
@@ -366,16 +368,15 @@ async fn the_unused_trailer_is_refunded_to_the_bandwidth_bucket() {
         cfg.tenants[0].max_bytes_per_second = 2 * u64::from(MAX_REFS_TRAILER_LEN);
     })
     .await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let (conn, file_size, header) = open(&h).await;
     // A grandchild: a leaf, whose trailer is empty.
     let root = header.elevation.root_records[0];
     let child = conn.fetch(1, root.offset, root.size).await;
-    let child = parse_record(&child.unwrap(), Some(welcome.file_size))
+    let child = parse_record(&child.unwrap(), Some(file_size))
         .unwrap()
         .header
         .children[0];
-    let leaf = tables_of(&conn, welcome.file_size, &child).await[0];
+    let leaf = tables_of(&conn, file_size, &child).await[0];
     // Wait for the bucket to refill (2 * 388 bytes a second).
     tokio::time::sleep(Duration::from_millis(1500)).await;
     // A full bucket holds 776 bytes: two reservations of size + 388 fit
@@ -399,8 +400,7 @@ async fn the_unused_trailer_is_refunded_to_the_bandwidth_bucket() {
 async fn bytes_sent_count_the_trailer() {
     let dir = tempfile::tempdir().unwrap();
     let h = three_level_server(dir.path(), false).await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let (conn, _, header) = open(&h).await;
     let root = header.elevation.root_records[0];
     let bytes = conn.fetch_refs(1, root.offset, root.size).await.unwrap();
     assert_eq!(bytes.len(), root.size as usize + 2 * 97 + 2);
@@ -425,13 +425,12 @@ async fn bytes_sent_count_the_trailer() {
 async fn a_child_failing_its_checksum_is_unknown_in_the_table() {
     let dir = tempfile::tempdir().unwrap();
     let h = three_level_server(dir.path(), true).await;
-    let (conn, welcome) = connect(&h, acme()).await.unwrap();
-    let header = Header::decode(&welcome.header, Some(welcome.file_size)).unwrap();
+    let (conn, file_size, header) = open(&h).await;
     let mut id = 0;
     for root in &header.elevation.root_records {
         // `check_refs` expects `corrupt_record` for child 0 and `None` in
         // its table; the other tables are the children's own.
-        let (n, tables) = check_refs(&conn, welcome.file_size, root, &mut id).await;
+        let (n, tables) = check_refs(&conn, file_size, root, &mut id).await;
         let counts: Vec<Option<usize>> = tables.iter().map(|t| t.as_ref().map(Vec::len)).collect();
         assert_eq!(counts, [None, Some(4), Some(0), Some(0)]);
         assert_eq!(n, root.size as usize + 1 + 97 + 2);

@@ -249,6 +249,19 @@ struct Inner {
     floors_refused: AtomicBool,
 }
 
+impl Inner {
+    /// Where this connection records that its server refused requests of
+    /// `kind` (an unknown frame, docs/PROTOCOL.md §7); none for a plain
+    /// `LodRequest`, which every server answers.
+    fn refused(&self, kind: RequestKind) -> Option<&AtomicBool> {
+        match kind {
+            RequestKind::Record => None,
+            RequestKind::RecordAndRefs => Some(&self.refs_refused),
+            RequestKind::RecordAndRefsAbove(_) => Some(&self.floors_refused),
+        }
+    }
+}
+
 impl Drop for Inner {
     fn drop(&mut self) {
         self.ctrl_task.abort();
@@ -542,11 +555,17 @@ impl Connection {
         size: u32,
         mut kind: RequestKind,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
-        if matches!(kind, RequestKind::RecordAndRefsAbove(_)) && self.table_floors_refused() {
-            kind = RequestKind::RecordAndRefs;
-        }
-        if kind == RequestKind::RecordAndRefs && self.child_tables_refused() {
-            kind = RequestKind::Record;
+        // Down the fallback chain (0x13 → 0x12 → 0x10) past every kind
+        // this connection's server refused before.
+        while self
+            .inner
+            .refused(kind)
+            .is_some_and(|r| r.load(Ordering::Relaxed))
+        {
+            match kind.fallback() {
+                Some(next) => kind = next,
+                None => break,
+            }
         }
         self.fetch_kind(id, offset, size, kind)
     }
@@ -569,11 +588,9 @@ impl Connection {
                 loop {
                     match read_response(opened, req, kind).await {
                         Err(e) if kind.has_refs() && refs_unknown(&e, req.id) => {
-                            let refused = match kind {
-                                RequestKind::RecordAndRefsAbove(_) => &this.inner.floors_refused,
-                                _ => &this.inner.refs_refused,
-                            };
-                            refused.store(true, Ordering::Relaxed);
+                            if let Some(refused) = this.inner.refused(kind) {
+                                refused.store(true, Ordering::Relaxed);
+                            }
                             let Some(next) = kind.fallback() else {
                                 return Err(e);
                             };
