@@ -356,6 +356,8 @@ pub struct Client {
     workers: Vec<JoinHandle<()>>,
     frame: u64,
     last_triangles: u64,
+    /// The last frame's measured cost ([`Client::observe_frame_cost`]).
+    frame_cost: Option<f64>,
     since_last: FrameStats,
     totals: Totals,
     last_error: Option<String>,
@@ -429,7 +431,7 @@ impl Client {
             tree,
             selector: Selector::new(),
             queue: RequestQueue::new(config.queue),
-            quality: QualityController::new(config.quality),
+            quality: QualityController::new(quality_config(&config)),
             config,
             r_min,
             r_max,
@@ -445,6 +447,7 @@ impl Client {
             workers,
             frame: 0,
             last_triangles: 0,
+            frame_cost: None,
             since_last: FrameStats::default(),
             totals: Totals::default(),
             last_error: None,
@@ -564,6 +567,14 @@ impl Client {
     /// The link estimate behind the request window.
     pub fn link(&self) -> &LinkEstimator {
         &self.link
+    }
+
+    /// The measured cost of the last frame in seconds: the caller's CPU and
+    /// GPU work for it, not the wait for a display refresh. The next
+    /// [`Client::frame`] feeds it to the frame-rate controller instead of
+    /// `dt`, which a vsynced display caps at its rate ([`crate::quality`]).
+    pub fn observe_frame_cost(&mut self, seconds: f64) {
+        self.frame_cost = Some(seconds);
     }
 
     /// The quality controller (e.g. to change its mode).
@@ -869,7 +880,11 @@ impl Client {
         }
         self.lookahead.prune(&self.tree, self.frame);
         // 2. Quality factor.
-        let qf = self.quality.update(dt, self.last_triangles as f64);
+        let tris = self.last_triangles as f64;
+        let qf = match self.frame_cost.take() {
+            Some(cost) => self.quality.update_with_cost(cost, tris),
+            None => self.quality.update(dt, tris),
+        };
         // 3. Selection. Over the memory budget the tolerance coarsens by
         // 5 % a frame until the least needed blocks merge (MERGE_AT of the
         // tolerance) and the tree fits; under 90 % of it, it relaxes back.
@@ -1216,6 +1231,19 @@ fn unblocked_by(tree: &PartialTree, op: &TreeOp, forced: &[(Tree, BlockId)]) -> 
             t.neighbour(&op.block, e)
                 .is_some_and(|nb| forced.contains(&(op.tree, nb.id)))
         })
+}
+
+/// The controller's configuration for `config`: where the pixel tolerance
+/// is what QF moves (every policy but the thesis's, whose importance uses QF
+/// itself), QF above its initial value leaves the tolerance at its floor
+/// ([`tolerance_for`]), so the controller's ceiling is put there
+/// (anti-windup, [`crate::quality`]).
+fn quality_config(config: &ClientConfig) -> QualityConfig {
+    let mut q = config.quality;
+    if config.policy != Policy::Thesis {
+        q.ceiling = q.ceiling.min(q.initial);
+    }
+    q
 }
 
 /// The tolerance of `config` at quality factor `qf` ([`Client::tolerance`]).

@@ -129,7 +129,13 @@ fn quality_controller_stays_in_bounds_under_hostile_input() {
             QualityMode::TriangleBudget(0.0),
         ] {
             for gain in [0.5, f64::NAN, f64::INFINITY, -1.0] {
-                for smoothing in [0.5, f64::NAN, 2.0] {
+                for (smoothing, ceiling) in [
+                    (0.5, QF_MAX),
+                    (f64::NAN, f64::NAN),
+                    (2.0, 0.0),
+                    (0.5, 1e4),
+                    (0.5, f64::NEG_INFINITY),
+                ] {
                     let mut c = QualityController::new(QualityConfig {
                         mode,
                         initial,
@@ -137,13 +143,16 @@ fn quality_controller_stays_in_bounds_under_hostile_input() {
                         smoothing,
                         tolerance: f64::NAN,
                         max_step: f64::INFINITY,
+                        ceiling,
                     });
                     for &s in &hostile {
                         for &t in &hostile {
-                            let q = c.update(s, t);
-                            assert!(q.is_finite() && (QF_MIN..=QF_MAX).contains(&q));
-                            let i = importance(1e4, 1e3, 64.0, q);
-                            assert!(i.is_finite());
+                            // Intervals and costs alike.
+                            for q in [c.update(s, t), c.update_with_cost(s, t)] {
+                                assert!(q.is_finite() && (QF_MIN..=QF_MAX).contains(&q));
+                                let i = importance(1e4, 1e3, 64.0, q);
+                                assert!(i.is_finite());
+                            }
                         }
                     }
                 }
