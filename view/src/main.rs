@@ -207,6 +207,20 @@ struct RenderArgs {
     /// Largest screen-space error in pixels the streaming client aims at.
     #[arg(long, default_value_t = planet_client::refinement::DEFAULT_MAX_SSE_PX)]
     max_sse: f64,
+    /// (Benchmark) build and draw every frame as the window does, waiting
+    /// for the device, and record the client's, the scene builder's and
+    /// the renderer's milliseconds per frame (CSV columns, a table, a JSON
+    /// line and timing.json). The quality controller stays off: every frame
+    /// aims at --max-sse.
+    #[arg(long)]
+    time: bool,
+    /// Run the window's frame-rate controller aiming at this many frames per
+    /// second (the window's default is 60): it coarsens the tolerance above
+    /// --max-sse while frames cost more than 1/RATE and refines back while
+    /// they cost less. Fed with each frame's measured cost (client, scene
+    /// builder, drawing waited for), as the window feeds it; needs --time.
+    #[arg(long)]
+    target_fps: Option<f64>,
 }
 
 #[derive(Debug, Args)]
@@ -306,6 +320,8 @@ fn render(a: RenderArgs) -> Result<()> {
         pace: !a.no_pace,
         duration: a.duration,
         max_sse: a.max_sse,
+        time: a.time,
+        target_fps: a.target_fps,
     };
     app::render_cmd::run(&opts)
 }

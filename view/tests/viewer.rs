@@ -157,6 +157,76 @@ fn render_command_writes_frames_and_the_error_falls_as_the_stream_converges() {
     );
 }
 
+/// `render --time` times every frame (client, scene, drawing) into the CSV
+/// and timing.json; with `--target-fps` the controller, fed those costs,
+/// never raises QF above its initial value (anti-windup), and without
+/// `--time` the flag is refused by name.
+#[test]
+fn render_time_records_every_frame_and_the_controller_stays_under_its_ceiling() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = small_db(dir.path(), "small.planetdb");
+    let traj = dir.path().join("pass.txt");
+    std::fs::write(
+        &traj,
+        "# t lat lon alt heading pitch\n0 25 15 350000 30 -50\n3 25 25 20000 30 -20\n",
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let run = |extra: &[&str]| {
+        Command::new(BIN)
+            .args(["render", "--trajectory"])
+            .arg(&traj)
+            .arg("--db")
+            .arg(&db)
+            .arg("--out")
+            .arg(&out)
+            .args(["--fps", "4", "--width", "160", "--height", "120"])
+            .args(["--every", "100"])
+            .args(extra)
+            .env("XDG_RUNTIME_DIR", xdg_runtime(dir.path()))
+            .output()
+            .expect("run planet-view render")
+    };
+    let refused = run(&["--target-fps", "4"]);
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("--time"),
+        "the error names --time"
+    );
+    let o = run(&["--time", "--target-fps", "4"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    eprintln!("{}\n{stderr}", String::from_utf8_lossy(&o.stdout));
+    if !o.status.success() && no_adapter(&stderr) {
+        common::skip_or_fail("no graphics adapter");
+        return;
+    }
+    assert!(o.status.success(), "render --time failed");
+    let text = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| head.iter().position(|h| *h == name).unwrap();
+    let (qf, parts) = (
+        col("quality_factor"),
+        ["client_ms", "scene_ms", "encode_ms", "draw_ms"].map(col),
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 13, "3 s at 4 fps");
+    for r in &rows {
+        for &k in &parts {
+            let ms: f64 = r[k].parse().expect("a time in every row");
+            assert!(ms.is_finite() && ms >= 0.0, "{}: {ms}", head[k]);
+        }
+        let q: f64 = r[qf].parse().unwrap();
+        assert!(q <= 1e4, "QF {q} above its initial value");
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("timing.json")).unwrap()).unwrap();
+    assert_eq!(json["frames"], 13);
+    let frame = &json["frame_ms"];
+    assert!(frame["median"].as_f64().unwrap() <= frame["max"].as_f64().unwrap());
+    assert!(json["frames_over_budget"].as_u64().unwrap() <= 13);
+}
+
 fn read_png(path: &Path) -> (u32, u32, Vec<u8>) {
     let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
     let mut r = dec.read_info().unwrap();

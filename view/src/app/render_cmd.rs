@@ -7,6 +7,7 @@ use crate::app::connect::{self, Source};
 use crate::app::reference::{image_error, reference_config, reference_qf, Reference};
 use crate::app::scene::{BuildMode, SceneBuilder};
 use anyhow::{Context, Result};
+use planet_client::quality::{QualityConfig, QualityMode};
 use planet_client::trajectory::Trajectory;
 use planet_client::ClientConfig;
 use planet_linksim::LinkConfig;
@@ -46,6 +47,13 @@ pub struct RenderOptions {
     pub duration: Option<f64>,
     /// Largest screen-space error in pixels of the streaming client.
     pub max_sse: f64,
+    /// Build and draw every frame (as the window does) and record the
+    /// client's, the scene builder's and the renderer's time per frame.
+    pub time: bool,
+    /// Run the window's frame-rate controller aiming at this rate, fed with
+    /// each frame's measured cost (none: the tolerance stays at `max_sse`).
+    /// Needs `time`.
+    pub target_fps: Option<f64>,
 }
 
 /// Set `r_min` for the drawn blocks' chord sag.
@@ -75,9 +83,18 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
     let every = opts.every.max(1);
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
+    if opts.target_fps.is_some() && !opts.time {
+        anyhow::bail!("--target-fps needs --time: the controller is fed the measured frame times");
+    }
     let rt = connect::runtime()?;
     let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
-    let cfg = ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse);
+    let mut cfg = ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse);
+    if let Some(t) = opts.target_fps {
+        cfg.quality = QualityConfig {
+            mode: QualityMode::TargetFps(t.max(1.0)),
+            ..QualityConfig::default()
+        };
+    }
     let mut sc = connect::connect(&rt, &endpoint.session, cfg)?;
     let header = sc.header().clone();
     let datum = header.datum;
@@ -115,8 +132,9 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
     );
     writeln!(
         csv,
-        "frame,time_s,bytes_received,in_flight,cancelled,cancelled_total,blocks,triangles,quality_factor,max_sse_px,mean_sse_px,written,depth_rmse_m,depth_rel_rmse,coverage_mismatch_px,covered_px,psnr_db,ref_blocks,ref_triangles,ref_frames,ref_converged"
+        "frame,time_s,bytes_received,in_flight,cancelled,cancelled_total,blocks,triangles,quality_factor,max_sse_px,mean_sse_px,written,depth_rmse_m,depth_rel_rmse,coverage_mismatch_px,covered_px,psnr_db,ref_blocks,ref_triangles,ref_frames,ref_converged,client_ms,scene_ms,encode_ms,draw_ms"
     )?;
+    let mut timing = FrameTimes::default();
     let aspect = opts.width as f64 / opts.height as f64;
     let n = (duration * fps).floor() as usize + 1;
     let start = Instant::now();
@@ -124,6 +142,7 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
     let mut written = 0usize;
     let mut errors = vec![];
     let mut header_changes = sc.counters().header_changes;
+    let mut last_cost_s = None;
     for i in 0..n {
         let t = i as f64 / fps;
         if opts.pace {
@@ -134,11 +153,34 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
             }
         }
         let cam = traj.camera_at(t, &datum, FOV_Y, aspect, opts.height as f64);
-        let out = sc.frame(&cam, 1.0 / fps);
+        let t_client = Instant::now();
+        // The frame-rate controller gets the last frame's measured cost,
+        // as the window gives it.
+        if let Some(cost) = last_cost_s {
+            sc.client.observe_frame_cost(cost);
+        }
+        let dt = 1.0 / fps;
+        let out = sc.frame(&cam, dt);
+        let client_s = t_client.elapsed().as_secs_f64();
         if sc.counters().header_changes != header_changes {
             header_changes = sc.counters().header_changes;
             scene = SceneBuilder::new(sc.header());
         }
+        // The window's per-frame work: the client's frame, the scene
+        // builder (meshes built on worker threads, the old ones drawn
+        // meanwhile) and a frame drawn and waited for.
+        let timed = if opts.time {
+            let t_scene = Instant::now();
+            let blocks = scene.prepare(sc.client.tree(), &out.draw, BuildMode::Async);
+            let scene_s = t_scene.elapsed().as_secs_f64();
+            renderer.renderer.settings = fit_planes(&base, &scene, &blocks);
+            let f = renderer.time_frame(&cam, &blocks)?;
+            timing.push(client_s, scene_s, f.encode_s, f.frame_s);
+            last_cost_s = Some(client_s + scene_s + f.frame_s);
+            Some((client_s, scene_s, f))
+        } else {
+            None
+        };
         let s = &out.stats;
         let write = i % every == 0 || i + 1 == n;
         let mut row = format!(
@@ -202,6 +244,18 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
         } else {
             row += ",,,,,,,,,";
         }
+        match timed {
+            Some((c, sc_s, f)) => {
+                row += &format!(
+                    ",{:.4},{:.4},{:.4},{:.4}",
+                    c * 1e3,
+                    sc_s * 1e3,
+                    f.encode_s * 1e3,
+                    f.frame_s * 1e3
+                )
+            }
+            None => row += ",,,,",
+        }
         writeln!(csv, "{row}")?;
     }
     csv.flush()?;
@@ -230,8 +284,88 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
             last.1.coverage_mismatch
         );
     }
+    if opts.time {
+        let json = timing.report(&renderer.adapter_name, opts.width, opts.height, fps);
+        let path = opts.out.join("timing.json");
+        std::fs::write(&path, format!("{json}\n"))
+            .with_context(|| format!("{}", path.display()))?;
+    }
     sc.close();
     drop(reference);
     endpoint.shutdown(&rt);
     Ok(())
+}
+
+/// Per-frame times of `--time`, in milliseconds.
+#[derive(Debug, Default)]
+struct FrameTimes {
+    client: Vec<f64>,
+    scene: Vec<f64>,
+    encode: Vec<f64>,
+    draw: Vec<f64>,
+    total: Vec<f64>,
+}
+
+impl FrameTimes {
+    fn push(&mut self, client_s: f64, scene_s: f64, encode_s: f64, draw_s: f64) {
+        self.client.push(client_s * 1e3);
+        self.scene.push(scene_s * 1e3);
+        self.encode.push(encode_s * 1e3);
+        self.draw.push(draw_s * 1e3);
+        self.total.push((client_s + scene_s + draw_s) * 1e3);
+    }
+
+    /// Print a table (median, p95, p99, max of each part and of the whole
+    /// frame; frames over the `fps` budget) and return it as JSON.
+    fn report(&mut self, adapter: &str, width: u32, height: u32, fps: f64) -> serde_json::Value {
+        let budget_ms = 1e3 / fps;
+        let n = self.total.len();
+        let over = self.total.iter().filter(|&&t| t > budget_ms).count();
+        let qs = [0.5, 0.95, 0.99, 1.0];
+        let mut parts = serde_json::Map::new();
+        println!("| {adapter}, {width}×{height}, {n} frames | median ms | p95 | p99 | max |");
+        println!("|---|---|---|---|---|");
+        for (name, key, v) in [
+            (
+                "client frame (selection, scheduling, arrivals)",
+                "client_ms",
+                &mut self.client,
+            ),
+            (
+                "scene (mesh builds queued, uploads)",
+                "scene_ms",
+                &mut self.scene,
+            ),
+            ("renderer encode (CPU)", "encode_ms", &mut self.encode),
+            ("encode + draw, waited for", "draw_ms", &mut self.draw),
+            ("whole frame", "frame_ms", &mut self.total),
+        ] {
+            if v.is_empty() {
+                continue;
+            }
+            let q = qs.map(|q| crate::app::snapshot::quantile(v, q));
+            println!(
+                "| {name} | {:.3} | {:.3} | {:.3} | {:.3} |",
+                q[0], q[1], q[2], q[3]
+            );
+            parts.insert(
+                key.to_owned(),
+                serde_json::json!({"median": q[0], "p95": q[1], "p99": q[2], "max": q[3]}),
+            );
+        }
+        println!("{over} of {n} frames over the {budget_ms:.2} ms budget of {fps} fps");
+        let mut json = serde_json::json!({
+            "adapter": adapter,
+            "width": width,
+            "height": height,
+            "fps": fps,
+            "frames": n,
+            "frames_over_budget": over,
+        });
+        if let Some(o) = json.as_object_mut() {
+            o.extend(parts);
+        }
+        println!("{json}");
+        json
+    }
 }

@@ -102,7 +102,7 @@ pub fn run(o: &SnapshotOptions) -> Result<()> {
 const WARM_UP_FRAMES: usize = 3;
 
 /// The value at quantile `q` (0..=1) of `v`, sorted in place.
-fn quantile(v: &mut [f64], q: f64) -> f64 {
+pub(crate) fn quantile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
 }

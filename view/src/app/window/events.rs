@@ -81,6 +81,14 @@ impl ApplicationHandler for App {
                         "planet-view: rendering on the CPU; aiming at {fps} fps (set --target-fps to change)"
                     );
                 }
+                if let Some(mhz) = g
+                    .window
+                    .current_monitor()
+                    .and_then(|m| m.refresh_rate_millihertz())
+                    .filter(|&mhz| mhz > 0)
+                {
+                    self.refresh_s = 1e3 / f64::from(mhz);
+                }
                 self.gfx = Some(g);
                 self.last_frame = Instant::now();
             }

@@ -154,6 +154,8 @@ pub fn run(opts: WindowOptions) -> Result<()> {
         last_cursor: None,
         input: Input::default(),
         last_frame: Instant::now(),
+        last_cost: None,
+        refresh_s: 1.0 / 60.0,
         frames: 0,
         fps: 0.0,
         fps_window: (Instant::now(), 0),
@@ -207,6 +209,10 @@ struct App {
     last_cursor: Option<(f64, f64)>,
     input: Input,
     last_frame: Instant,
+    /// The last frame's cost for the frame-rate controller ([`frame_cost`]).
+    last_cost: Option<f64>,
+    /// The display's refresh period in seconds (1/60 where unknown).
+    refresh_s: f64,
     frames: u64,
     fps: f64,
     fps_window: (Instant, u64),
@@ -259,6 +265,9 @@ impl App {
         };
         let (w, h) = (gfx.config.width, gfx.config.height);
         let cam = self.ctl.camera(&datum, w, h);
+        if let Some(cost) = self.last_cost.take() {
+            client.client.observe_frame_cost(cost);
+        }
         let out = client.frame(&cam, dt);
         if client.counters().header_changes != self.header_changes {
             self.header_changes = client.counters().header_changes;
@@ -383,6 +392,7 @@ impl App {
                 "bytes_received": received,
                 "in_flight": s.in_flight,
                 "max_sse_px": s.max_screen_error,
+                "tolerance_px": client.client.tolerance(),
                 "cursor": self.cursor_point.map(|(a, b, e, _)| [a, b, e]),
             });
             writeln!(out_state, "{line}")
@@ -396,6 +406,7 @@ impl App {
         client.client.recycle(out.draw);
 
         // Draw.
+        let acquire = Instant::now();
         let frame = match gfx.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(f)
             | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
@@ -407,6 +418,7 @@ impl App {
             }
             _ => return Ok(()),
         };
+        let mut waited = acquire.elapsed();
         let device = gfx.renderer.device().clone();
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("window frame"),
@@ -479,11 +491,39 @@ impl App {
             }
         }
         gfx.window.pre_present_notify();
+        let present = Instant::now();
         gfx.renderer.queue().present(frame);
+        waited += present.elapsed();
+        // On a CPU renderer the drawing runs on other CPU threads after
+        // submit, in neither the work nor (at its low rates) a capped
+        // interval: the controller keeps the interval there.
+        self.last_cost = (!gfx.cpu_adapter).then(|| {
+            frame_cost(
+                now.elapsed().saturating_sub(waited).as_secs_f64(),
+                dt,
+                self.refresh_s,
+            )
+        });
         if done {
             event_loop.exit();
         }
         Ok(())
+    }
+}
+
+/// A frame's cost for the frame-rate controller
+/// ([`planet_client::Client::observe_frame_cost`]): its CPU work (`work_s`,
+/// the frame without the waits for a surface texture and for presenting,
+/// which vsync fills), or the interval `dt` since the frame before where that
+/// missed a refresh of the display (`refresh_s`): the GPU's work shows only
+/// there, since the window does not time the GPU. A GPU-bound scene may so
+/// alternate between a coarser tolerance (missed refreshes) and a finer one
+/// (cheap CPU work) within the controller's band.
+fn frame_cost(work_s: f64, dt: f64, refresh_s: f64) -> f64 {
+    if dt > 1.5 * refresh_s {
+        work_s.max(dt)
+    } else {
+        work_s
     }
 }
 
@@ -495,5 +535,21 @@ pub fn default_target_fps(cpu_adapter: bool) -> f64 {
         15.0
     } else {
         60.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::frame_cost;
+
+    #[test]
+    fn cost_is_the_work_unless_a_refresh_was_missed() {
+        let r = 1.0 / 60.0;
+        // On time: the CPU work, however long vsync made the interval.
+        assert_eq!(frame_cost(0.004, r, r), 0.004);
+        // Two refreshes for one frame: the interval shows the GPU's work.
+        assert_eq!(frame_cost(0.004, 2.0 * r, r), 2.0 * r);
+        // CPU work beyond the interval (the first frame) stays the cost.
+        assert_eq!(frame_cost(0.1, 2.0 * r, r), 0.1);
     }
 }
