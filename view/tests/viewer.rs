@@ -84,39 +84,44 @@ fn read_csv(path: &Path) -> Vec<Row> {
         .collect()
 }
 
+/// Run `planet-view render` over `db` along `keyframes` (lines of `t lat
+/// lon alt heading pitch`) at 4 fps and 160×120, with `args` added; returns
+/// the output directory and the process's output.
+fn render_flight(
+    dir: &Path,
+    db: &Path,
+    keyframes: &str,
+    args: &[&str],
+) -> (PathBuf, std::process::Output) {
+    let traj = dir.join("flight.txt");
+    std::fs::write(&traj, format!("# t lat lon alt heading pitch\n{keyframes}")).unwrap();
+    let out = dir.join("out");
+    let o = Command::new(BIN)
+        .args(["render", "--trajectory"])
+        .arg(&traj)
+        .arg("--db")
+        .arg(db)
+        .arg("--out")
+        .arg(&out)
+        .args(["--fps", "4", "--width", "160", "--height", "120"])
+        .args(args)
+        .env("XDG_RUNTIME_DIR", xdg_runtime(dir))
+        .output()
+        .expect("run planet-view render");
+    (out, o)
+}
+
 #[test]
 fn render_command_writes_frames_and_the_error_falls_as_the_stream_converges() {
     let dir = tempfile::tempdir().unwrap();
     let db = small_db(dir.path(), "small.planetdb");
     // Hold still 350 km above the procedural planet, looking 50° down.
-    let traj = dir.path().join("hold.txt");
-    std::fs::write(
-        &traj,
-        "# t lat lon alt heading pitch\n0 25 15 350000 30 -50\n5 25 15 350000 30 -50\n",
-    )
-    .unwrap();
-    let out = dir.path().join("out");
-    let o = Command::new(BIN)
-        .args(["render", "--trajectory"])
-        .arg(&traj)
-        .arg("--db")
-        .arg(&db)
-        .arg("--out")
-        .arg(&out)
-        .args([
-            "--fps",
-            "4",
-            "--width",
-            "160",
-            "--height",
-            "120",
-            "--every",
-            "4",
-            "--reference",
-        ])
-        .env("XDG_RUNTIME_DIR", xdg_runtime(dir.path()))
-        .output()
-        .expect("run planet-view render");
+    let (out, o) = render_flight(
+        dir.path(),
+        &db,
+        "0 25 15 350000 30 -50\n5 25 15 350000 30 -50\n",
+        &["--every", "4", "--reference"],
+    );
     let stderr = String::from_utf8_lossy(&o.stderr);
     let stdout = String::from_utf8_lossy(&o.stdout);
     eprintln!("{stdout}\n{stderr}");
@@ -165,35 +170,15 @@ fn render_command_writes_frames_and_the_error_falls_as_the_stream_converges() {
 fn render_time_records_every_frame_and_the_controller_stays_under_its_ceiling() {
     let dir = tempfile::tempdir().unwrap();
     let db = small_db(dir.path(), "small.planetdb");
-    let traj = dir.path().join("pass.txt");
-    std::fs::write(
-        &traj,
-        "# t lat lon alt heading pitch\n0 25 15 350000 30 -50\n3 25 25 20000 30 -20\n",
-    )
-    .unwrap();
-    let out = dir.path().join("out");
-    let run = |extra: &[&str]| {
-        Command::new(BIN)
-            .args(["render", "--trajectory"])
-            .arg(&traj)
-            .arg("--db")
-            .arg(&db)
-            .arg("--out")
-            .arg(&out)
-            .args(["--fps", "4", "--width", "160", "--height", "120"])
-            .args(["--every", "100"])
-            .args(extra)
-            .env("XDG_RUNTIME_DIR", xdg_runtime(dir.path()))
-            .output()
-            .expect("run planet-view render")
-    };
-    let refused = run(&["--target-fps", "4"]);
+    let keyframes = "0 25 15 350000 30 -50\n3 25 25 20000 30 -20\n";
+    let run = |extra: &[&str]| render_flight(dir.path(), &db, keyframes, extra);
+    let (_, refused) = run(&["--every", "100", "--target-fps", "4"]);
     assert!(!refused.status.success());
     assert!(
         String::from_utf8_lossy(&refused.stderr).contains("--time"),
         "the error names --time"
     );
-    let o = run(&["--time", "--target-fps", "4"]);
+    let (out, o) = run(&["--every", "100", "--time", "--target-fps", "4"]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     eprintln!("{}\n{stderr}", String::from_utf8_lossy(&o.stdout));
     if !o.status.success() && no_adapter(&stderr) {
