@@ -80,6 +80,16 @@ pub struct QualityConfig {
     pub ceiling: f64,
 }
 
+impl QualityConfig {
+    /// The defaults, regulating the frame rate towards `fps` (at least 1).
+    pub fn target_fps(fps: f64) -> QualityConfig {
+        QualityConfig {
+            mode: QualityMode::TargetFps(fps.max(1.0)),
+            ..QualityConfig::default()
+        }
+    }
+}
+
 impl Default for QualityConfig {
     fn default() -> Self {
         QualityConfig {
@@ -131,7 +141,7 @@ impl QualityController {
     /// since the previous frame) and the number of triangles it rendered.
     /// Returns the new QF.
     pub fn update(&mut self, frame_seconds: f64, triangles: f64) -> f64 {
-        self.step(frame_seconds, triangles, 1.0, false)
+        self.step(frame_seconds, triangles, false)
     }
 
     /// Feed one frame's measured cost in seconds (its CPU and GPU work, not
@@ -139,22 +149,18 @@ impl QualityController {
     /// frame-rate band then lies below the frame budget (module doc).
     /// Returns the new QF.
     pub fn update_with_cost(&mut self, cost_seconds: f64, triangles: f64) -> f64 {
-        let widen = 1.0 + self.config.tolerance.max(0.0);
-        self.step(cost_seconds, triangles, widen * widen, true)
+        self.step(cost_seconds, triangles, true)
     }
 
-    /// One step; a frame-rate target is multiplied by `fps_headroom`; with
-    /// `to_centre`, QF moves on until the measurement reaches the target.
-    fn step(
-        &mut self,
-        frame_seconds: f64,
-        triangles: f64,
-        fps_headroom: f64,
-        to_centre: bool,
-    ) -> f64 {
+    /// One step. With `cost` (a frame's cost, not its interval) a frame-rate
+    /// target moves up by `(1 + tolerance)²`, putting the band below the
+    /// budget, and QF moves on until the measurement reaches the target.
+    fn step(&mut self, frame_seconds: f64, triangles: f64, cost: bool) -> f64 {
+        let widen = 1.0 + self.config.tolerance.max(0.0);
         let (target, measured, inverse) = match self.config.mode {
             QualityMode::Fixed => return self.qf,
-            QualityMode::TargetFps(t) => (t * fps_headroom, 1.0 / frame_seconds, false),
+            QualityMode::TargetFps(t) if cost => (t * widen * widen, 1.0 / frame_seconds, false),
+            QualityMode::TargetFps(t) => (t, 1.0 / frame_seconds, false),
             QualityMode::TriangleBudget(t) => (t, triangles, true),
         };
         if !(measured.is_finite() && measured > 0.0 && target.is_finite() && target > 0.0) {
@@ -167,14 +173,14 @@ impl QualityController {
         };
         self.smoothed = Some(m);
         let ratio = if inverse { target / m } else { m / target };
-        let band = (1.0 + self.config.tolerance.max(0.0)).ln();
+        let band = widen.ln();
         let err = ratio.ln();
         // Outside the band QF moves; fed with costs it keeps moving until the
         // measurement reaches the target (the band's centre), not only its
         // edge: a plant resting at the edge spends half its noisy frames
         // beyond it. (The thesis's law, for `update`, stops at the edge.)
         let moving = match self.chasing {
-            Some(up) if to_centre => (err > 0.0) == up,
+            Some(up) if cost => (err > 0.0) == up,
             _ => err.abs() > band,
         };
         if !moving || err == 0.0 {

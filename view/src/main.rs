@@ -210,8 +210,8 @@ struct RenderArgs {
     /// (Benchmark) build and draw every frame as the window does, waiting
     /// for the device, and record the client's, the scene builder's and
     /// the renderer's milliseconds per frame (CSV columns, a table, a JSON
-    /// line and timing.json). The quality controller stays off: every frame
-    /// aims at --max-sse.
+    /// line and timing.json). Without --target-fps the quality controller
+    /// stays off: every frame aims at --max-sse.
     #[arg(long)]
     time: bool,
     /// Run the window's frame-rate controller aiming at this many frames per

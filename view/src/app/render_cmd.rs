@@ -7,7 +7,7 @@ use crate::app::connect::{self, Source};
 use crate::app::reference::{image_error, reference_config, reference_qf, Reference};
 use crate::app::scene::{BuildMode, SceneBuilder};
 use anyhow::{Context, Result};
-use planet_client::quality::{QualityConfig, QualityMode};
+use planet_client::quality::QualityConfig;
 use planet_client::trajectory::Trajectory;
 use planet_client::ClientConfig;
 use planet_linksim::LinkConfig;
@@ -81,19 +81,16 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
     let duration = opts.duration.unwrap_or_else(|| traj.duration()).max(0.0);
     let fps = opts.fps.max(0.1);
     let every = opts.every.max(1);
-    std::fs::create_dir_all(&opts.out)
-        .with_context(|| format!("creating {}", opts.out.display()))?;
     if opts.target_fps.is_some() && !opts.time {
         anyhow::bail!("--target-fps needs --time: the controller is fed the measured frame times");
     }
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("creating {}", opts.out.display()))?;
     let rt = connect::runtime()?;
     let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
     let mut cfg = ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse);
     if let Some(t) = opts.target_fps {
-        cfg.quality = QualityConfig {
-            mode: QualityMode::TargetFps(t.max(1.0)),
-            ..QualityConfig::default()
-        };
+        cfg.quality = QualityConfig::target_fps(t);
     }
     let mut sc = connect::connect(&rt, &endpoint.session, cfg)?;
     let header = sc.header().clone();
@@ -153,14 +150,13 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
             }
         }
         let cam = traj.camera_at(t, &datum, FOV_Y, aspect, opts.height as f64);
-        let t_client = Instant::now();
         // The frame-rate controller gets the last frame's measured cost,
         // as the window gives it.
         if let Some(cost) = last_cost_s {
             sc.client.observe_frame_cost(cost);
         }
-        let dt = 1.0 / fps;
-        let out = sc.frame(&cam, dt);
+        let t_client = Instant::now();
+        let out = sc.frame(&cam, 1.0 / fps);
         let client_s = t_client.elapsed().as_secs_f64();
         if sc.counters().header_changes != header_changes {
             header_changes = sc.counters().header_changes;
@@ -175,9 +171,8 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
             let scene_s = t_scene.elapsed().as_secs_f64();
             renderer.renderer.settings = fit_planes(&base, &scene, &blocks);
             let f = renderer.time_frame(&cam, &blocks)?;
-            timing.push(client_s, scene_s, f.encode_s, f.frame_s);
             last_cost_s = Some(client_s + scene_s + f.frame_s);
-            Some((client_s, scene_s, f))
+            Some(timing.push([client_s, scene_s, f.encode_s, f.frame_s]))
         } else {
             None
         };
@@ -245,15 +240,7 @@ pub fn run(opts: &RenderOptions) -> Result<()> {
             row += ",,,,,,,,,";
         }
         match timed {
-            Some((c, sc_s, f)) => {
-                row += &format!(
-                    ",{:.4},{:.4},{:.4},{:.4}",
-                    c * 1e3,
-                    sc_s * 1e3,
-                    f.encode_s * 1e3,
-                    f.frame_s * 1e3
-                )
-            }
+            Some(ms) => ms.iter().for_each(|v| row += &format!(",{v:.4}")),
             None => row += ",,,,",
         }
         writeln!(csv, "{row}")?;
@@ -307,12 +294,17 @@ struct FrameTimes {
 }
 
 impl FrameTimes {
-    fn push(&mut self, client_s: f64, scene_s: f64, encode_s: f64, draw_s: f64) {
-        self.client.push(client_s * 1e3);
-        self.scene.push(scene_s * 1e3);
-        self.encode.push(encode_s * 1e3);
-        self.draw.push(draw_s * 1e3);
-        self.total.push((client_s + scene_s + draw_s) * 1e3);
+    /// Record one frame's client, scene, encode and draw seconds (the draw
+    /// includes the encode); returns them in milliseconds.
+    fn push(&mut self, seconds: [f64; 4]) -> [f64; 4] {
+        let ms = seconds.map(|s| s * 1e3);
+        let [client, scene, encode, draw] = ms;
+        self.client.push(client);
+        self.scene.push(scene);
+        self.encode.push(encode);
+        self.draw.push(draw);
+        self.total.push(client + scene + draw);
+        ms
     }
 
     /// Print a table (median, p95, p99, max of each part and of the whole

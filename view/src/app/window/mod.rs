@@ -18,7 +18,7 @@ use crate::app::hud;
 use crate::app::render_cmd::fit_planes;
 use crate::app::scene::{BuildMode, SceneBuilder};
 use anyhow::{Context, Result};
-use planet_client::quality::{QualityConfig, QualityMode};
+use planet_client::quality::QualityConfig;
 use planet_client::ClientConfig;
 use planet_core::format::Header;
 use planet_render::{FrameTarget, RenderSettings};
@@ -91,14 +91,7 @@ pub fn run(opts: WindowOptions) -> Result<()> {
     let rt = connect::runtime()?;
     let endpoint = connect::start(&rt, &opts.source, opts.link.as_ref())?;
     let cfg = ClientConfig {
-        quality: QualityConfig {
-            mode: QualityMode::TargetFps(
-                opts.target_fps
-                    .unwrap_or(default_target_fps(false))
-                    .max(1.0),
-            ),
-            ..QualityConfig::default()
-        },
+        quality: QualityConfig::target_fps(opts.target_fps.unwrap_or(default_target_fps(false))),
         memory_budget: opts.memory_mb.map(|mb| (mb.max(0.0) * 1e6) as u64),
         ..ClientConfig::for_policy(planet_client::Policy::Ours, opts.max_sse)
     };
