@@ -23,6 +23,9 @@
 //!    executed is held until it is. With [`ClientConfig::lookahead`] the
 //!    children that those children's split would ask are asked too, from
 //!    the child tables that came with a record ([`crate::lookahead`]).
+//!    With [`ClientConfig::prefetch`] the traversal of step 3 also asks,
+//!    after everything the present view wants, what the view predicted a
+//!    little short of the answers' arrival wants ([`crate::view_prediction`]).
 //!
 //! The network layer sends each [`Outgoing`] request (one stream per request
 //! in QUIC), cancels each id of [`FrameOutput::cancel`], and hands every
@@ -102,6 +105,19 @@ pub struct ClientConfig {
     /// half full: when the rate binds rather than the round trip, nothing
     /// is asked ahead.
     pub lookahead: bool,
+    /// Prefetch for the view predicted a little short of when an answer
+    /// asked now is applied ([`ClientConfig::predict_view`],
+    /// [`crate::view_prediction::ViewPredictor::early_frames`]): a visible
+    /// leaf that the present view neither loads nor splits is loaded or
+    /// split when that view wants it, after everything the present view
+    /// wants, and a split block merges only when that view lets it too. A
+    /// block is then asked before the view needs it, and still needed when
+    /// its answer comes: an approaching camera finds its data about one
+    /// latency sooner.
+    /// Only while the link's window ([`ClientConfig::link_window`]) is at
+    /// most half full, as [`ClientConfig::lookahead`]: a prefetch in flight
+    /// would otherwise hold back a request the present view needs.
+    pub prefetch: bool,
 }
 
 impl Default for ClientConfig {
@@ -181,6 +197,7 @@ impl ClientConfig {
             predict_view,
             eager_children: policy == Policy::Ours,
             lookahead: policy == Policy::Ours,
+            prefetch: policy == Policy::Ours,
             decode_wait_s: if policy == Policy::Ours {
                 DECODE_WAIT_S
             } else {
@@ -909,7 +926,7 @@ impl Client {
         let forced: Vec<(Tree, BlockId)> =
             applied.iter().filter(|a| a.3).map(|a| (a.0, a.1)).collect();
         if !forced.is_empty() {
-            let pre = self.selector.select(&self.tree, &view, &refiner);
+            let pre = self.selector.select(&self.tree, &view, &refiner, None);
             for op in &pre.ops {
                 if op.kind == OpKind::Split
                     && unblocked_by(&self.tree, op, &forced)
@@ -920,10 +937,6 @@ impl Client {
             }
             self.selector.recycle(pre.draw);
         }
-        let sel = self.selector.select(&self.tree, &view, &refiner);
-        // 4. Requests.
-        let tree = &self.tree;
-
         // Only blocks still visible when the answer will be applied
         // (view_prediction.rs); forced neighbour loads ignore visibility.
         // The answer's block must also be in view half a horizon after that
@@ -946,6 +959,28 @@ impl Client {
             .as_ref()
             .filter(|_| self.config.policy != Policy::Thesis)
             .map(|pv| Refiner::new(self.config.policy, pv, qf, tol));
+        // The prefetch, for the view a little short of that one
+        // (`ViewPredictor::early`), while the window has room.
+        let roomy = !self.config.link_window
+            || self.queue.bytes_in_flight() * 2 <= self.link.window_bytes();
+        let early = self
+            .predictor
+            .early()
+            .filter(|_| self.config.prefetch && roomy && later.is_some())
+            .map(|e| {
+                Refiner::new(
+                    self.config.policy,
+                    &View::new(&e, self.r_min, self.r_max),
+                    qf,
+                    tol,
+                )
+            });
+        let sel = self
+            .selector
+            .select(&self.tree, &view, &refiner, early.as_ref());
+        // 4. Requests.
+        let tree = &self.tree;
+
         let ops = select_tree_ops(sel.ops, self.config.tree_ops_per_frame);
         let eager = if self.config.eager_children {
             children_loads(

@@ -434,6 +434,11 @@ impl Refiner {
         self.policy
     }
 
+    /// The eye this refiner measures from.
+    pub fn eye(&self) -> DVec3 {
+        self.eye
+    }
+
     /// The pixel tolerance.
     pub fn tolerance(&self) -> f64 {
         self.tol
@@ -549,6 +554,29 @@ impl Refiner {
                 }
             }
         }
+    }
+
+    /// Whether a leaf with LOD `lod` whose measure here is `m` may want its
+    /// LOD 0 or its children in the view of `ahead`, whose eye is `moved`
+    /// metres from this one's: a cheap test, never false where
+    /// [`Refiner::leaf`] at `ahead` would load or split. The footprint's
+    /// distance is 1-Lipschitz in the eye ([`Footprint::distance`]), so
+    /// there it is at least `m.dist − moved`, and the error that decides
+    /// (`s1` to load, `s0` to split) grows at most by the ratio of the
+    /// scales. Only for the screen-space policies (`true` for the
+    /// thesis's, whose measure is no error).
+    pub fn may_want_ahead(&self, ahead: &Refiner, moved: f64, m: &Measure, lod: u8) -> bool {
+        if self.policy == Policy::Thesis || ahead.policy == Policy::Thesis {
+            return true;
+        }
+        let now = if lod == 0 { m.b } else { m.a };
+        // A margin for rounding, and for the eye's own rounding.
+        let nearer = m.dist - moved - 1e-9 * (m.dist.abs() + moved) - 1e-6;
+        // now · (scale there / scale here) > tol there, without dividing;
+        // NaN (an unusable measure) counts as "may".
+        let bound = now * ahead.sse.scale(nearer.max(ahead.near)) * (1.0 + 1e-9);
+        let against = ahead.tol * m.scale;
+        bound.is_nan() || against.is_nan() || bound > against
     }
 
     /// Whether a leaf with LOD `lod` and bounds `b` still needs its LOD 0
@@ -683,6 +711,15 @@ fn breadth(m: &Measure, level: u8) -> f64 {
         1e12
     };
     -(level as f64 * 1e13 + d)
+}
+
+/// The priority of a load or split that only the view predicted for its
+/// answer's arrival wants (a prefetch, [`crate::ClientConfig::prefetch`])
+/// from its priority `p` there: below every load and split the present view
+/// wants (theirs are positive in the screen-space policies), in the order
+/// of `p`.
+pub fn ahead_priority(p: f64) -> f64 {
+    -1.0 / (1.0 + p.max(0.0))
 }
 
 /// A usable pixel tolerance.

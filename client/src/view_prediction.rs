@@ -23,6 +23,16 @@
 //! itself, so nothing changes for it; the displacement is capped at half the
 //! height above the planet's minimum sphere and the turn at 30°, so a
 //! prediction never puts the eye inside the planet or flips the view.
+//!
+//! The same extrapolation over a shorter horizon, the latency less two
+//! deviations ([`ViewPredictor::early_frames`]), drives the prefetch
+//! ([`crate::ClientConfig::prefetch`]): what that view needs and the present
+//! one does not yet is asked now, after everything the present view needs.
+//! Most answers come after that horizon, when the camera has got there, so
+//! they are drawn on arrival as the others are, about one latency sooner
+//! than if they were asked when needed; the full horizon would bring blocks
+//! a few frames before the view draws them (0.7 % of the bytes on the deep
+//! planet's `rainier` at 10 Mbit/s, docs/BENCHMARKS.md).
 
 use crate::visibility::Camera;
 use glam::DVec3;
@@ -45,6 +55,9 @@ pub struct ViewPredictor {
     latency_dev: f64,
     /// The eye's displacement over the last frame, metres.
     step: f64,
+    /// The camera at [`ViewPredictor::early_frames`], from the last
+    /// [`ViewPredictor::predict_stay`].
+    early: Option<Camera>,
 }
 
 impl ViewPredictor {
@@ -80,6 +93,25 @@ impl ViewPredictor {
             .map(|l| l + DEV_MARGIN * self.latency_dev)
     }
 
+    /// The prefetch's horizon in frames ([`crate::ClientConfig::prefetch`]):
+    /// the measured latency less `DEV_MARGIN` of its deviations, so that
+    /// most answers asked now are applied after it. A block that the view
+    /// needs by then and is asked now is drawn when its answer comes (its
+    /// bytes relevant on arrival), sooner than if it were asked when
+    /// needed. `None` where that is not ahead of now.
+    pub fn early_frames(&self) -> Option<f64> {
+        self.latency_frames
+            .map(|l| l - DEV_MARGIN * self.latency_dev)
+            .filter(|t| *t > 0.0)
+    }
+
+    /// The camera predicted [`ViewPredictor::early_frames`] ahead by the
+    /// last [`ViewPredictor::predict_stay`] (`None` where it predicted
+    /// nothing, or that horizon is not ahead).
+    pub fn early(&self) -> Option<Camera> {
+        self.early
+    }
+
     /// Record this frame's camera and return the camera predicted when a
     /// request sent now is applied; `None` when there is nothing to predict
     /// (first frame, no latency measured yet, or the camera did not move).
@@ -96,14 +128,19 @@ impl ViewPredictor {
     /// passing out at the side of the screen: docs/BENCHMARKS.md,
     /// "edge-pass"); its answer would be drawn a frame or two at best.
     pub fn predict_stay(&mut self, camera: &Camera, r_min: f64) -> Option<[Camera; 2]> {
+        self.early = None;
         let prev = self.prev.replace(*camera)?;
         let step = (camera.eye - prev.eye).length();
         self.step = if step.is_finite() { step } else { 0.0 };
         let tau = self.horizon_frames()?;
-        Some([
+        let out = [
             extrapolate(&prev, camera, tau, r_min)?,
             extrapolate(&prev, camera, tau * STAY_HORIZONS, r_min)?,
-        ])
+        ];
+        self.early = self
+            .early_frames()
+            .and_then(|t| extrapolate(&prev, camera, t, r_min));
+        Some(out)
     }
 }
 
@@ -243,6 +280,35 @@ mod tests {
         p.predict(&a, R);
         let q = p.predict(&b, R).expect("moving");
         assert!((q.eye.x - (R + 500.0)).abs() < 1e-6, "{}", q.eye.x - R);
+    }
+
+    /// The prefetch's camera is the latency less two deviations ahead, and
+    /// none where that is not ahead of now.
+    #[test]
+    fn early_camera_is_two_deviations_short_of_the_latency() {
+        let mut p = ViewPredictor::new();
+        p.observe_latency(10);
+        p.observe_latency(6);
+        // Latency 9.2 frames, deviation 1: 7.2 frames ahead.
+        assert_eq!(p.early_frames(), Some(9.2 - 2.0));
+        let a = cam(DVec3::new(R + 2_000.0, 0.0, 0.0), DVec3::NEG_X);
+        let b = cam(DVec3::new(R + 1_990.0, 0.0, 0.0), DVec3::NEG_X);
+        assert!(p.predict_stay(&a, R).is_none() && p.early().is_none());
+        p.predict_stay(&b, R).expect("moving");
+        let e = p.early().expect("early");
+        assert!(
+            (e.eye.x - (R + 1_990.0 - 72.0)).abs() < 1e-6,
+            "{}",
+            e.eye.x - R
+        );
+        // A still camera predicts nothing, early or not.
+        p.predict_stay(&b, R);
+        assert!(p.early().is_none());
+        // Latency 1.6 frames, deviation 2: nothing ahead.
+        let mut p = ViewPredictor::new();
+        p.observe_latency(0);
+        p.observe_latency(8);
+        assert_eq!(p.early_frames(), None);
     }
 
     #[test]

@@ -10,7 +10,9 @@ use planet_core::format::{ChildRef, Tree};
 use planet_core::{BlockId, Edge, Face};
 use std::sync::Arc;
 
-use super::{colour_holds_split, ColourBinding, Ctx, DrawBlock, NeighbourLod, Selection};
+use super::{
+    colour_holds_split, Ahead, ColourBinding, Ctx, DrawBlock, Leaf, NeighbourLod, Selection,
+};
 
 /// No node (index sentinel).
 const NONE: u32 = u32::MAX;
@@ -859,8 +861,15 @@ impl Selector {
     }
 
     /// Select the LODs to draw and trigger requests for one frame: the same
-    /// result as [`select`](super::select)`(tree, view, qf)`.
-    pub fn select(&mut self, tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
+    /// result as [`select`](super::select)`(tree, view, refiner, ahead)`.
+    pub fn select(
+        &mut self,
+        tree: &PartialTree,
+        view: &View,
+        refiner: &Refiner,
+        ahead: Option<&Refiner>,
+    ) -> Selection {
+        let ahead = Ahead::new(refiner, ahead);
         self.update(tree);
         let mut draw = std::mem::take(&mut self.spare_draw);
         draw.clear();
@@ -928,13 +937,12 @@ impl Selector {
                     m.sse_lod = NOT_DRAWN;
                 }
                 if let Some(p) = refiner.merge(&m.m) {
+                    let c = &self.cold[h.slot as usize];
                     if tree.can_merge(Tree::Elevation, &self.ids[i]).is_ok()
-                        && !colour_holds_split(
-                            tree,
-                            refiner,
-                            &self.ids[i],
-                            &self.cold[h.slot as usize].fp,
-                        )
+                        && !colour_holds_split(tree, refiner, &self.ids[i], &c.fp)
+                        && ahead.as_ref().is_none_or(|a| {
+                            a.lets_merge(Kind::Elevation, &c.fp, ew, (c.err1, c.err0))
+                        })
                     {
                         cx.out.ops.push(TreeOp {
                             kind: OpKind::Merge,
@@ -988,6 +996,20 @@ impl Selector {
             } else if d.split && h.splittable {
                 let p = refiner.split_priority(&mm, id.level, h.centre);
                 cx.trigger_split(Tree::Elevation, id, p, 0);
+            } else if let Some(a) = &ahead {
+                let c = &self.cold[h.slot as usize];
+                let leaf = Leaf {
+                    kind: Kind::Elevation,
+                    id,
+                    fp: &c.fp,
+                    width: ew,
+                    err: (c.err1, c.err0),
+                    lod: h.lod,
+                    size: c.record.size,
+                    centre: h.centre,
+                    splittable: h.splittable,
+                };
+                cx.prefetch(a, refiner, &mm, leaf);
             }
             let m = &mut self.memo[i];
             let c = &self.cold[h.slot as usize];
@@ -1041,7 +1063,13 @@ impl Selector {
                 let mm = m.1;
                 if c.split {
                     if let Some(p) = refiner.merge(&mm) {
-                        if tree.can_merge(Tree::Colour, &c.id).is_ok() {
+                        let fp = &self.cold[h.slot as usize].fp;
+                        let err = (c.record.error as f64, c.err0);
+                        if tree.can_merge(Tree::Colour, &c.id).is_ok()
+                            && ahead
+                                .as_ref()
+                                .is_none_or(|a| a.lets_merge(Kind::Colour, fp, cw, err))
+                        {
                             cx.out.ops.push(TreeOp {
                                 kind: OpKind::Merge,
                                 tree: Tree::Colour,
@@ -1071,6 +1099,19 @@ impl Selector {
                     });
                 } else if d.split && c.splittable {
                     cx.split_colour(c.id, refiner.split_priority(&mm, c.id.level, h.centre));
+                } else if let Some(a) = &ahead {
+                    let leaf = Leaf {
+                        kind: Kind::Colour,
+                        id: c.id,
+                        fp: &self.cold[h.slot as usize].fp,
+                        width: cw,
+                        err: (c.record.error as f64, c.err0),
+                        lod: c.lod,
+                        size: c.record.size,
+                        centre: h.centre,
+                        splittable: c.splittable,
+                    };
+                    cx.prefetch(a, refiner, &mm, leaf);
                 }
             }
         }

@@ -33,10 +33,11 @@
 //!
 //! This module holds what both share: the draw list and the triggers.
 
-use crate::refinement::{Footprint, Kind, Refiner};
+use crate::refinement::{ahead_priority, Footprint, Kind, Measure, Policy, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{Blocked, PartialTree};
 use crate::visibility::View;
+use glam::DVec3;
 use planet_core::format::Tree;
 use planet_core::{BlockId, Edge};
 
@@ -103,6 +104,67 @@ pub struct Selection {
     pub triangles: u64,
 }
 
+/// The view predicted for when an answer asked now is applied, for the
+/// prefetch of both traversals ([`crate::ClientConfig::prefetch`]): a
+/// visible leaf that the present view neither loads nor splits is loaded
+/// or split when that view wants it, at [`ahead_priority`] (after
+/// everything the present view wants), and a split block merges only when
+/// that view lets it too, so that a block split for the view ahead is not
+/// merged again before the camera gets there. The screen-space policies
+/// only.
+pub(crate) struct Ahead<'a> {
+    refiner: &'a Refiner,
+    /// How far its eye is from the present one.
+    moved: f64,
+}
+
+impl<'a> Ahead<'a> {
+    /// `ahead`'s view against `present`'s (`None` without a prediction or
+    /// with the thesis's policy).
+    pub(crate) fn new(present: &Refiner, ahead: Option<&'a Refiner>) -> Option<Ahead<'a>> {
+        let refiner = ahead?;
+        if present.policy() == Policy::Thesis || refiner.policy() == Policy::Thesis {
+            return None;
+        }
+        Some(Ahead {
+            refiner,
+            moved: (refiner.eye() - present.eye()).length(),
+        })
+    }
+
+    /// Whether a split block that the present view merges may merge as far
+    /// as the view ahead goes.
+    pub(crate) fn lets_merge(
+        &self,
+        kind: Kind,
+        fp: &Footprint,
+        width: f64,
+        err: (f64, f64),
+    ) -> bool {
+        let m = self.refiner.measure(kind, fp, width, err.0, err.1);
+        self.refiner.merge(&m).is_some()
+    }
+}
+
+/// A visible leaf the present view neither loads nor splits, for
+/// [`Ctx::prefetch`].
+pub(crate) struct Leaf<'b> {
+    pub(crate) kind: Kind,
+    pub(crate) id: BlockId,
+    pub(crate) fp: &'b Footprint,
+    /// Block width of its tree.
+    pub(crate) width: f64,
+    /// Errors at LOD 1 and LOD 0.
+    pub(crate) err: (f64, f64),
+    /// Its LOD (0 or 1).
+    pub(crate) lod: u8,
+    /// Its record's size in bytes.
+    pub(crate) size: u32,
+    pub(crate) centre: DVec3,
+    /// Its data let it split.
+    pub(crate) splittable: bool,
+}
+
 /// The output of a traversal under construction, and the triggers both
 /// traversals share.
 pub(crate) struct Ctx<'a> {
@@ -133,6 +195,48 @@ impl Ctx<'_> {
             screen_error: sse.0,
             screen_area: sse.1,
         });
+    }
+
+    /// The prefetch of a visible leaf whose present measure is `m` (see
+    /// [`Ahead`]).
+    #[inline]
+    pub(crate) fn prefetch(&mut self, ahead: &Ahead, present: &Refiner, m: &Measure, leaf: Leaf) {
+        // A leaf with its LOD 0 that cannot split has nothing to ask.
+        if (leaf.lod == 0 && !leaf.splittable)
+            || !present.may_want_ahead(ahead.refiner, ahead.moved, m, leaf.lod)
+        {
+            return;
+        }
+        self.prefetch_wanted(ahead, leaf);
+    }
+
+    /// [`Ctx::prefetch`] of a leaf that passed its cheap test.
+    #[inline(never)]
+    fn prefetch_wanted(&mut self, ahead: &Ahead, leaf: Leaf) {
+        let a = ahead.refiner;
+        let ma = a.measure(leaf.kind, leaf.fp, leaf.width, leaf.err.0, leaf.err.1);
+        let d = a.leaf(&ma, leaf.lod);
+        let tree = match leaf.kind {
+            Kind::Elevation => Tree::Elevation,
+            Kind::Colour => Tree::Colour,
+        };
+        if d.load {
+            let p = a.load_priority(
+                leaf.kind,
+                &ma,
+                leaf.lod,
+                leaf.id.level,
+                leaf.centre,
+                leaf.size,
+            );
+            self.load(tree, leaf.id, ahead_priority(p), false);
+        } else if d.split && leaf.splittable {
+            let p = ahead_priority(a.split_priority(&ma, leaf.id.level, leaf.centre));
+            match tree {
+                Tree::Elevation => self.trigger_split(tree, leaf.id, p, 0),
+                Tree::Colour => self.split_colour(leaf.id, p),
+            }
+        }
     }
 
     pub(crate) fn load(&mut self, tree: Tree, block: BlockId, importance: f64, forced: bool) {

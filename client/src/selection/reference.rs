@@ -8,12 +8,20 @@ use crate::visibility::View;
 use planet_core::format::Tree;
 use planet_core::{BlockId, Edge, Face};
 
-use super::{colour_holds_split, ColourBinding, Ctx, NeighbourLod, Selection};
+use super::{colour_holds_split, Ahead, ColourBinding, Ctx, Leaf, NeighbourLod, Selection};
 
 /// Select the LODs to draw and trigger requests for one frame, with the
 /// refinement test and request order of `refiner`
-/// ([`crate::refinement`]).
-pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
+/// ([`crate::refinement`]), and with `ahead`, the refiner of the view
+/// predicted for when an answer asked now is applied, the prefetch for it
+/// (`None`: none; see [`crate::ClientConfig::prefetch`]).
+pub fn select(
+    tree: &PartialTree,
+    view: &View,
+    refiner: &Refiner,
+    ahead: Option<&Refiner>,
+) -> Selection {
+    let ahead = Ahead::new(refiner, ahead);
     let mut cx = Ctx {
         tree,
         out: Selection::default(),
@@ -44,6 +52,9 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 if let Some(p) = refiner.merge(&m) {
                     if tree.can_merge(Tree::Elevation, &id).is_ok()
                         && !colour_holds_split(tree, refiner, &id, &Footprint::of(b))
+                        && ahead.as_ref().is_none_or(|a| {
+                            a.lets_merge(Kind::Elevation, &Footprint::of(b), ew, (err1, err0))
+                        })
                     {
                         cx.out.ops.push(TreeOp {
                             kind: OpKind::Merge,
@@ -90,6 +101,19 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
             } else if d.split && n.can_split_data().is_ok() {
                 let p = refiner.split_priority(&m, id.level, b.centre);
                 cx.trigger_split(Tree::Elevation, id, p, 0);
+            } else if let Some(a) = &ahead {
+                let leaf = Leaf {
+                    kind: Kind::Elevation,
+                    id,
+                    fp: &Footprint::of(b),
+                    width: ew,
+                    err: (err1, err0),
+                    lod: n.lod,
+                    size: n.record.size,
+                    centre: b.centre,
+                    splittable: n.can_split_data().is_ok(),
+                };
+                cx.prefetch(a, refiner, &m, leaf);
             }
             let error = if lod == 1 { err1 } else { err0 };
             let sse = refiner.drawn_error(&m, error);
@@ -120,7 +144,11 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 let m = refiner.measure(Kind::Colour, &Footprint::of(b), cw, err1, err0);
                 if n.split {
                     if let Some(p) = refiner.merge(&m) {
-                        if tree.can_merge(Tree::Colour, &id).is_ok() {
+                        if tree.can_merge(Tree::Colour, &id).is_ok()
+                            && ahead.as_ref().is_none_or(|a| {
+                                a.lets_merge(Kind::Colour, &Footprint::of(b), cw, (err1, err0))
+                            })
+                        {
                             cx.out.ops.push(TreeOp {
                                 kind: OpKind::Merge,
                                 tree: Tree::Colour,
@@ -150,6 +178,19 @@ pub fn select(tree: &PartialTree, view: &View, refiner: &Refiner) -> Selection {
                 } else if d.split && n.can_split_data().is_ok() {
                     let p = refiner.split_priority(&m, id.level, b.centre);
                     cx.split_colour(id, p);
+                } else if let Some(a) = &ahead {
+                    let leaf = Leaf {
+                        kind: Kind::Colour,
+                        id,
+                        fp: &Footprint::of(b),
+                        width: cw,
+                        err: (err1, err0),
+                        lod: n.lod,
+                        size: n.record.size,
+                        centre: b.centre,
+                        splittable: n.can_split_data().is_ok(),
+                    };
+                    cx.prefetch(a, refiner, &m, leaf);
                 }
             }
         }
