@@ -35,7 +35,7 @@
 
 use crate::refinement::{ahead_priority, Footprint, Kind, Measure, Policy, Refiner};
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
-use crate::tree::{Blocked, PartialTree};
+use crate::tree::{Blocked, Node, PartialTree};
 use crate::visibility::View;
 use glam::DVec3;
 use planet_core::format::Tree;
@@ -163,6 +163,31 @@ pub(crate) struct Leaf<'b> {
     pub(crate) centre: DVec3,
     /// Its data let it split.
     pub(crate) splittable: bool,
+}
+
+impl<'b> Leaf<'b> {
+    /// The leaf of tree node `n` (of tree `kind`, block width `width`)
+    /// whose elevation block's footprint is `fp` and bounding-box centre
+    /// `centre`.
+    pub(crate) fn of_node(
+        kind: Kind,
+        n: &Node,
+        fp: &'b Footprint,
+        width: f64,
+        centre: DVec3,
+    ) -> Leaf<'b> {
+        Leaf {
+            kind,
+            id: n.id,
+            fp,
+            width,
+            err: (n.record.error as f64, n.child_error()),
+            lod: n.lod,
+            size: n.record.size,
+            centre,
+            splittable: n.can_split_data().is_ok(),
+        }
+    }
 }
 
 /// The output of a traversal under construction, and the triggers both

@@ -102,17 +102,8 @@ pub fn select(
                 let p = refiner.split_priority(&m, id.level, b.centre);
                 cx.trigger_split(Tree::Elevation, id, p, 0);
             } else if let Some(a) = &ahead {
-                let leaf = Leaf {
-                    kind: Kind::Elevation,
-                    id,
-                    fp: &Footprint::of(b),
-                    width: ew,
-                    err: (err1, err0),
-                    lod: n.lod,
-                    size: n.record.size,
-                    centre: b.centre,
-                    splittable: n.can_split_data().is_ok(),
-                };
+                let fp = Footprint::of(b);
+                let leaf = Leaf::of_node(Kind::Elevation, n, &fp, ew, b.centre);
                 cx.prefetch(a, refiner, &m, leaf);
             }
             let error = if lod == 1 { err1 } else { err0 };
@@ -179,18 +170,13 @@ pub fn select(
                     let p = refiner.split_priority(&m, id.level, b.centre);
                     cx.split_colour(id, p);
                 } else if let Some(a) = &ahead {
-                    let leaf = Leaf {
-                        kind: Kind::Colour,
-                        id,
-                        fp: &Footprint::of(b),
-                        width: cw,
-                        err: (err1, err0),
-                        lod: n.lod,
-                        size: n.record.size,
-                        centre: b.centre,
-                        splittable: n.can_split_data().is_ok(),
-                    };
-                    cx.prefetch(a, refiner, &m, leaf);
+                    let fp = Footprint::of(b);
+                    cx.prefetch(
+                        a,
+                        refiner,
+                        &m,
+                        Leaf::of_node(Kind::Colour, n, &fp, cw, b.centre),
+                    );
                 }
             }
         }
