@@ -131,13 +131,14 @@ impl ClientConfig {
     /// The configuration of `policy` at pixel tolerance `max_sse_px`, with
     /// the policy's own queue (see [`crate::refinement`] for the sources):
     ///
-    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests | levels per round trip |
-    /// |---|---|---|---|---|---|---|---|---|
-    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 | 2 |
-    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 | 1 |
-    /// | cesium | 18 | 20 | never | no | no | count | 3 | 1 |
-    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 | 1 |
+    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests | levels per round trip | prefetch for the view ahead |
+    /// |---|---|---|---|---|---|---|---|---|---|
+    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 | 2 | yes |
+    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 | 1 | no |
+    /// | cesium | 18 | 20 | never | no | no | count | 3 | 1 | no |
+    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 | 1 | no |
     ///
+    /// Prefetch: [`ClientConfig::prefetch`] (it needs the view predicted).
     /// Levels per round trip: [`ClientConfig::lookahead`]; CesiumJS
     /// requests a tile's children only once the tile is rendered
     /// (`QuadtreePrimitive`'s traversal refines loaded tiles only). The
