@@ -13,7 +13,7 @@ use common::*;
 use glam::DVec3;
 use planet_client::refinement::Refiner;
 use planet_client::request_queue::OpKind;
-use planet_client::selection::{select, Selector};
+use planet_client::selection::{draws_lod0, select, Selector};
 use planet_client::stats::FrameStats;
 use planet_client::visibility::View;
 use planet_client::{Camera, Client, Policy};
@@ -49,6 +49,23 @@ fn checked_step(
     let want = select(c.tree(), &view, &r, None);
     let got = sel.select(c.tree(), &view, &r, None);
     assert_eq!(got, want, "selector differs from select");
+    // Which records the draw list draws at LOD 0 (the relevance account),
+    // from the flat tree as from a scan of the list; about 500 nodes a
+    // frame, so that the scans stay cheap.
+    for kind in [Tree::Elevation, Tree::Colour] {
+        let Some(t) = c.tree().tree(kind) else {
+            continue;
+        };
+        let step = (t.len() / 500).max(1);
+        for n in t.nodes().step_by(step) {
+            assert_eq!(
+                sel.draws_lod0(kind, &n.id),
+                draws_lod0(&want.draw, kind, &n.id),
+                "{kind:?} {:?} drawn at LOD 0",
+                n.id
+            );
+        }
+    }
     // Colour loads only what a drawn block is textured with.
     for l in want.loads.iter().filter(|l| l.tree == Tree::Colour) {
         assert!(

@@ -26,9 +26,6 @@ const NOT_DRAWN: u8 = u8::MAX;
 struct Hot {
     /// A ball holding the bounding points of the node's whole subtree.
     sub: (DVec3, f64),
-    /// Bounding-box centre and footprint radius (importance, §4.2.4).
-    centre: DVec3,
-    radius: f64,
     parent: u32,
     /// Its [`Cold`] slot (stable while the node stays).
     slot: u32,
@@ -62,8 +59,6 @@ struct Cold {
     /// Where the block is, for its distance ([`Refiner::measure`]).
     fp: Footprint,
     record: ChildRef,
-    /// Deepest colour node covering this block (leaves).
-    colour: Binding,
 }
 
 /// Where a drawn block's colour comes from.
@@ -155,6 +150,10 @@ pub struct Selector {
     children: Vec<[u32; 4]>,
     nb: Vec<[u32; 4]>,
     col_of_elev: Vec<u32>,
+    /// Per elevation node: the deepest colour node covering it (leaves;
+    /// split nodes `Binding::None`), in pre-order so that a splice
+    /// rewrites it in one sweep ([`Selector::bind_colours`]).
+    bind: Vec<Binding>,
     roots: [u32; 6],
     /// Per frame: 0 hidden, 1 visible, 2 visible with the whole subtree.
     state: Vec<u8>,
@@ -165,6 +164,9 @@ pub struct Selector {
     cbound: Vec<bool>,
     /// Per drawn block: its elevation node and colour binding.
     draw_idx: Vec<(u32, Binding)>,
+    /// Per frame: the colour bindings read from the tree
+    /// ([`Binding::Tree`]), for [`Selector::draws_lod0`].
+    tree_bound: Vec<ColourBinding>,
     /// A draw list handed back by the caller ([`Selector::recycle`]),
     /// reused so that a frame does not allocate (and fault in) a fresh one.
     spare_draw: Vec<DrawBlock>,
@@ -392,8 +394,6 @@ impl Selector {
             });
             let hot = Hot {
                 sub: own,
-                centre: b.centre,
-                radius: b.radius,
                 parent,
                 slot: NONE,
                 split: n.split,
@@ -411,7 +411,6 @@ impl Selector {
                 err0: n.child_error(),
                 fp: Footprint::of(b),
                 record: n.record,
-                colour: Binding::None,
             };
             let i = self.push_node(id, hot, cold, Memo::default());
             if n.split {
@@ -458,6 +457,8 @@ impl Selector {
         let mut cov = std::mem::take(&mut self.scratch);
         cov.clear();
         cov.resize(n, NONE);
+        self.bind.clear();
+        self.bind.resize(n, Binding::None);
         for i in 0..n {
             let j = self.col_of_elev[i];
             cov[i] = if j != NONE {
@@ -468,7 +469,7 @@ impl Selector {
                     p => cov[p as usize],
                 }
             };
-            self.cold[self.hot[i].slot as usize].colour = if self.hot[i].split {
+            self.bind[i] = if self.hot[i].split {
                 Binding::None
             } else {
                 match cov[i] {
@@ -814,9 +815,7 @@ impl Selector {
         for i in 0..self.ids.len() {
             let (a, b) = (&self.hot[i], &f.hot[i]);
             let (ca, cb) = (&self.cold[a.slot as usize], &f.cold[b.slot as usize]);
-            let same = a.centre == b.centre
-                && a.radius == b.radius
-                && a.parent == b.parent
+            let same = a.parent == b.parent
                 && a.split == b.split
                 && a.lod == b.lod
                 && a.splittable == b.splittable
@@ -825,7 +824,7 @@ impl Selector {
                 && ca.err1 == cb.err1
                 && ca.err0 == cb.err0
                 && ca.record == cb.record
-                && ca.colour == cb.colour;
+                && self.bind[i] == f.bind[i];
             if !same {
                 return Some(format!("node {:?} differs", self.ids[i]));
             }
@@ -896,6 +895,7 @@ impl Selector {
         self.drawn.clear();
         self.drawn.resize(n, NOT_DRAWN);
         self.draw_idx.clear();
+        self.tree_bound.clear();
         for (i, h) in self.hot.iter().enumerate() {
             let st = match h.parent {
                 NONE => 1,
@@ -967,12 +967,10 @@ impl Selector {
             }
             let mm = m.m;
             let id = self.ids[i];
+            let c = &self.cold[h.slot as usize];
             let d = refiner.leaf(&mm, h.lod);
             let lod = d.lod.max(h.lod);
-            let lod = if lod == 1
-                && h.lod == 0
-                && colour_holds_split(tree, refiner, &id, &self.cold[h.slot as usize].fp)
-            {
+            let lod = if lod == 1 && h.lod == 0 && colour_holds_split(tree, refiner, &id, &c.fp) {
                 0
             } else {
                 lod
@@ -982,22 +980,21 @@ impl Selector {
                 cx.out.loads.push(LoadRequest {
                     tree: Tree::Elevation,
                     block: id,
-                    record: self.cold[h.slot as usize].record,
+                    record: c.record,
                     importance: refiner.load_priority(
                         Kind::Elevation,
                         &mm,
                         h.lod,
                         id.level,
-                        h.centre,
-                        self.cold[h.slot as usize].record.size,
+                        c.fp.centre,
+                        c.record.size,
                     ),
                     forced: false,
                 });
             } else if d.split && h.splittable {
-                let p = refiner.split_priority(&mm, id.level, h.centre);
+                let p = refiner.split_priority(&mm, id.level, c.fp.centre);
                 cx.trigger_split(Tree::Elevation, id, p, 0);
             } else if let Some(a) = &ahead {
-                let c = &self.cold[h.slot as usize];
                 let leaf = Leaf {
                     kind: Kind::Elevation,
                     id,
@@ -1006,21 +1003,19 @@ impl Selector {
                     err: (c.err1, c.err0),
                     lod: h.lod,
                     size: c.record.size,
-                    centre: h.centre,
                     splittable: h.splittable,
                 };
                 cx.prefetch(a, refiner, &mm, leaf);
             }
             let m = &mut self.memo[i];
-            let c = &self.cold[h.slot as usize];
             if m.sse_lod != lod {
                 let error = if lod == 1 { c.err1 } else { c.err0 };
                 m.sse = refiner.drawn_error(&mm, error);
                 m.sse_lod = lod;
             }
-            let area = refiner.drawn_area(&mm, h.radius);
+            let area = refiner.drawn_area(&mm, c.fp.radius);
             cx.draw(id, lod, et.width, d.importance, (m.sse, area));
-            self.draw_idx.push((i as u32, c.colour));
+            self.draw_idx.push((i as u32, self.bind[i]));
         }
         // Colour tree.
         self.cdrawn.clear();
@@ -1040,30 +1035,21 @@ impl Selector {
         if let Some(ct) = tree.colour() {
             let cw = ct.width as f64;
             for (j, c) in self.cnodes.iter().enumerate() {
-                let h = &self.hot[c.elev as usize];
                 // A leaf no drawn block is textured with triggers nothing,
                 // and its drawn LOD is never asked for.
                 if !c.split && !bound[j] {
                     continue;
                 }
+                // Its elevation node's footprint (§4.4.3).
+                let fp = &self.cold[self.hot[c.elev as usize].slot as usize].fp;
                 let m = &mut self.cmemo[j];
                 if m.0 != gen {
                     let err1 = c.record.error as f64;
-                    *m = (
-                        gen,
-                        refiner.measure(
-                            Kind::Colour,
-                            &self.cold[h.slot as usize].fp,
-                            cw,
-                            err1,
-                            c.err0,
-                        ),
-                    );
+                    *m = (gen, refiner.measure(Kind::Colour, fp, cw, err1, c.err0));
                 }
                 let mm = m.1;
                 if c.split {
                     if let Some(p) = refiner.merge(&mm) {
-                        let fp = &self.cold[h.slot as usize].fp;
                         let err = (c.record.error as f64, c.err0);
                         if tree.can_merge(Tree::Colour, &c.id).is_ok()
                             && ahead
@@ -1092,23 +1078,22 @@ impl Selector {
                             &mm,
                             c.lod,
                             c.id.level,
-                            h.centre,
+                            fp.centre,
                             c.record.size,
                         ),
                         forced: false,
                     });
                 } else if d.split && c.splittable {
-                    cx.split_colour(c.id, refiner.split_priority(&mm, c.id.level, h.centre));
+                    cx.split_colour(c.id, refiner.split_priority(&mm, c.id.level, fp.centre));
                 } else if let Some(a) = &ahead {
                     let leaf = Leaf {
                         kind: Kind::Colour,
                         id: c.id,
-                        fp: &self.cold[h.slot as usize].fp,
+                        fp,
                         width: cw,
                         err: (c.record.error as f64, c.err0),
                         lod: c.lod,
                         size: c.record.size,
-                        centre: h.centre,
                         splittable: c.splittable,
                     };
                     cx.prefetch(a, refiner, &mm, leaf);
@@ -1145,17 +1130,59 @@ impl Selector {
                     })
                 }
                 Binding::Tree(id) => {
-                    tree.colour()
+                    let b = tree
+                        .colour()
                         .and_then(|t| t.get(&id))
                         .map(|c| ColourBinding {
                             block: c.id,
                             lod: c.lod,
-                        })
+                        });
+                    self.tree_bound.extend(b);
+                    b
                 }
             };
         }
         self.last_draw = cx.out.draw.len();
         cx.out
+    }
+
+    /// [`draws_lod0`](super::draws_lod0) of the last selection's draw list,
+    /// from the flat tree: `block`'s node drawn (elevation) or textured
+    /// onto a drawn block (colour) at LOD 0, or a child's at LOD 1. A few
+    /// steps down the flat tree instead of a scan of the list (the client
+    /// asks it for the records it accounts for, every frame).
+    pub fn draws_lod0(&self, kind: Tree, block: &BlockId) -> bool {
+        let in_tree = || {
+            self.tree_bound.iter().any(|c| match c.lod {
+                0 => c.block == *block,
+                1 => c.block.parent() == Some(*block),
+                _ => false,
+            })
+        };
+        let Some(i) = self.find(block) else {
+            return kind == Tree::Colour && in_tree();
+        };
+        let children = self.children[i].iter().filter(|c| **c != NONE);
+        match kind {
+            Tree::Elevation => {
+                let drawn = |i: usize, lod: u8| self.drawn.get(i) == Some(&lod);
+                drawn(i, 0) || children.into_iter().any(|&c| drawn(c as usize, 1))
+            }
+            Tree::Colour => {
+                // A colour leaf's drawn LOD is what the blocks it is bound
+                // to (`cbound`) are textured with.
+                let textured = |e: usize, lod: u8| match self.col_of_elev.get(e) {
+                    Some(&j) if j != NONE => {
+                        let j = j as usize;
+                        self.cbound.get(j) == Some(&true) && self.cdrawn.get(j) == Some(&lod)
+                    }
+                    _ => false,
+                };
+                textured(i, 0)
+                    || children.into_iter().any(|&c| textured(c as usize, 1))
+                    || in_tree()
+            }
+        }
     }
 
     /// Hands a draw list of an earlier [`Selector::select`] back for reuse

@@ -37,7 +37,6 @@ use crate::refinement::{ahead_priority, Footprint, Kind, Measure, Policy, Refine
 use crate::request_queue::{LoadRequest, OpKind, TreeOp};
 use crate::tree::{Blocked, Node, PartialTree};
 use crate::visibility::View;
-use glam::DVec3;
 use planet_core::format::Tree;
 use planet_core::{BlockId, Edge};
 
@@ -104,6 +103,24 @@ pub struct Selection {
     pub triangles: u64,
 }
 
+/// Whether the draw list `draw` draws the LOD 0 samples of `block` of tree
+/// `kind`: the block drawn (elevation) or textured onto a drawn block
+/// (colour) at LOD 0, or one of its children at LOD 1, as a split block's
+/// LOD 0 is its children's LOD 1 (thesis §3.3.2). The definition, by a
+/// scan of the list; [`Selector::draws_lod0`] answers the same for its
+/// last selection without the scan.
+pub fn draws_lod0(draw: &[DrawBlock], kind: Tree, block: &BlockId) -> bool {
+    let at = |b: BlockId, lod: u8| match lod {
+        0 => b == *block,
+        1 => b.parent() == Some(*block),
+        _ => false,
+    };
+    draw.iter().any(|d| match kind {
+        Tree::Elevation => at(d.block, d.lod),
+        Tree::Colour => d.colour.is_some_and(|c| at(c.block, c.lod)),
+    })
+}
+
 /// The view predicted for when an answer asked now is applied, for the
 /// prefetch of both traversals ([`crate::ClientConfig::prefetch`]): a
 /// visible leaf that the present view neither loads nor splits is loaded
@@ -160,22 +177,14 @@ pub(crate) struct Leaf<'b> {
     pub(crate) lod: u8,
     /// Its record's size in bytes.
     pub(crate) size: u32,
-    pub(crate) centre: DVec3,
     /// Its data let it split.
     pub(crate) splittable: bool,
 }
 
 impl<'b> Leaf<'b> {
     /// The leaf of tree node `n` (of tree `kind`, block width `width`)
-    /// whose elevation block's footprint is `fp` and bounding-box centre
-    /// `centre`.
-    pub(crate) fn of_node(
-        kind: Kind,
-        n: &Node,
-        fp: &'b Footprint,
-        width: f64,
-        centre: DVec3,
-    ) -> Leaf<'b> {
+    /// whose elevation block's footprint is `fp`.
+    pub(crate) fn of_node(kind: Kind, n: &Node, fp: &'b Footprint, width: f64) -> Leaf<'b> {
         Leaf {
             kind,
             id: n.id,
@@ -184,7 +193,6 @@ impl<'b> Leaf<'b> {
             err: (n.record.error as f64, n.child_error()),
             lod: n.lod,
             size: n.record.size,
-            centre,
             splittable: n.can_split_data().is_ok(),
         }
     }
@@ -251,12 +259,12 @@ impl Ctx<'_> {
                 &ma,
                 leaf.lod,
                 leaf.id.level,
-                leaf.centre,
+                leaf.fp.centre,
                 leaf.size,
             );
             self.load(tree, leaf.id, ahead_priority(p), false);
         } else if d.split && leaf.splittable {
-            let p = ahead_priority(a.split_priority(&ma, leaf.id.level, leaf.centre));
+            let p = ahead_priority(a.split_priority(&ma, leaf.id.level, leaf.fp.centre));
             match tree {
                 Tree::Elevation => self.trigger_split(tree, leaf.id, p, 0),
                 Tree::Colour => self.split_colour(leaf.id, p),

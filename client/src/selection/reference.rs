@@ -103,7 +103,7 @@ pub fn select(
                 cx.trigger_split(Tree::Elevation, id, p, 0);
             } else if let Some(a) = &ahead {
                 let fp = Footprint::of(b);
-                let leaf = Leaf::of_node(Kind::Elevation, n, &fp, ew, b.centre);
+                let leaf = Leaf::of_node(Kind::Elevation, n, &fp, ew);
                 cx.prefetch(a, refiner, &m, leaf);
             }
             let error = if lod == 1 { err1 } else { err0 };
@@ -171,12 +171,7 @@ pub fn select(
                     cx.split_colour(id, p);
                 } else if let Some(a) = &ahead {
                     let fp = Footprint::of(b);
-                    cx.prefetch(
-                        a,
-                        refiner,
-                        &m,
-                        Leaf::of_node(Kind::Colour, n, &fp, cw, b.centre),
-                    );
+                    cx.prefetch(a, refiner, &m, Leaf::of_node(Kind::Colour, n, &fp, cw));
                 }
             }
         }
