@@ -960,10 +960,15 @@ impl Client {
             .as_ref()
             .filter(|_| self.config.policy != Policy::Thesis)
             .map(|pv| Refiner::new(self.config.policy, pv, qf, tol));
-        // The prefetch, for the view a little short of that one
-        // (`ViewPredictor::early`), while the window has room.
+        // Whether the link's window is at most half full. Asking ahead
+        // (the prefetch below, the lookahead after the selection) shortens
+        // a chain of round trips; when the window is fuller, the rate
+        // binds, not the round trip, and a new request asked ahead (or a
+        // child table) would only take the place of one needed now.
         let roomy = !self.config.link_window
             || self.queue.bytes_in_flight() * 2 <= self.link.window_bytes();
+        // The prefetch, for the view a little short of that one
+        // (`ViewPredictor::early`), while the window has room.
         let early = self
             .predictor
             .early()
@@ -1000,16 +1005,12 @@ impl Client {
             Some((pv, lr)) => (pv, lr),
             None => (&view, &refiner),
         };
-        // Asking ahead shortens a chain of round trips; when the link's
-        // window is more than half full, the rate binds, not the round
-        // trip, and a new request asked ahead (or a child table) would only
-        // take the place of one needed now. Those already in flight stay
-        // asked while the prediction holds: cancelling them when the window
-        // fills, to ask them again when it empties, would only waste the
-        // link.
-        let lookahead = self.config.lookahead
-            && (!self.config.link_window
-                || self.queue.bytes_in_flight() * 2 <= self.link.window_bytes());
+        // The lookahead asks ahead only while the window has room
+        // (`roomy`: nothing since changed what is in flight). Those already
+        // in flight stay asked while the prediction holds: cancelling them
+        // when the window fills, to ask them again when it empties, would
+        // only waste the link.
+        let lookahead = self.config.lookahead && roomy;
         let mut ahead_loads = if self.config.lookahead {
             let e = tree.elevation();
             let seeds: Vec<(BlockId, ChildRef)> = eager

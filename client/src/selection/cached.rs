@@ -11,7 +11,8 @@ use planet_core::{BlockId, Edge, Face};
 use std::sync::Arc;
 
 use super::{
-    colour_holds_split, Ahead, ColourBinding, Ctx, DrawBlock, Leaf, NeighbourLod, Selection,
+    colour_holds_split, lod0_block, Ahead, ColourBinding, Ctx, DrawBlock, Leaf, NeighbourLod,
+    Selection,
 };
 
 /// No node (index sentinel).
@@ -1153,20 +1154,18 @@ impl Selector {
     /// asks it for the records it accounts for, every frame).
     pub fn draws_lod0(&self, kind: Tree, block: &BlockId) -> bool {
         let in_tree = || {
-            self.tree_bound.iter().any(|c| match c.lod {
-                0 => c.block == *block,
-                1 => c.block.parent() == Some(*block),
-                _ => false,
-            })
+            self.tree_bound
+                .iter()
+                .any(|c| lod0_block(c.block, c.lod) == Some(*block))
         };
         let Some(i) = self.find(block) else {
             return kind == Tree::Colour && in_tree();
         };
-        let children = self.children[i].iter().filter(|c| **c != NONE);
+        let mut children = self.children[i].iter().filter(|c| **c != NONE);
         match kind {
             Tree::Elevation => {
                 let drawn = |i: usize, lod: u8| self.drawn.get(i) == Some(&lod);
-                drawn(i, 0) || children.into_iter().any(|&c| drawn(c as usize, 1))
+                drawn(i, 0) || children.any(|&c| drawn(c as usize, 1))
             }
             Tree::Colour => {
                 // A colour leaf's drawn LOD is what the blocks it is bound
@@ -1178,9 +1177,7 @@ impl Selector {
                     }
                     _ => false,
                 };
-                textured(i, 0)
-                    || children.into_iter().any(|&c| textured(c as usize, 1))
-                    || in_tree()
+                textured(i, 0) || children.any(|&c| textured(c as usize, 1)) || in_tree()
             }
         }
     }

@@ -110,15 +110,21 @@ pub struct Selection {
 /// scan of the list; [`Selector::draws_lod0`] answers the same for its
 /// last selection without the scan.
 pub fn draws_lod0(draw: &[DrawBlock], kind: Tree, block: &BlockId) -> bool {
-    let at = |b: BlockId, lod: u8| match lod {
-        0 => b == *block,
-        1 => b.parent() == Some(*block),
-        _ => false,
-    };
+    let at = |b: BlockId, lod: u8| lod0_block(b, lod) == Some(*block);
     draw.iter().any(|d| match kind {
         Tree::Elevation => at(d.block, d.lod),
         Tree::Colour => d.colour.is_some_and(|c| at(c.block, c.lod)),
     })
+}
+
+/// The block whose LOD 0 samples block `b` shows when drawn at `lod`: `b`
+/// itself at LOD 0, its parent at LOD 1 (thesis §3.3.2).
+pub(crate) fn lod0_block(b: BlockId, lod: u8) -> Option<BlockId> {
+    match lod {
+        0 => Some(b),
+        1 => b.parent(),
+        _ => None,
+    }
 }
 
 /// The view predicted for when an answer asked now is applied, for the
