@@ -177,6 +177,13 @@ impl ScreenError {
         }
     }
 
+    /// The distance at which `error` metres project to `px` pixels,
+    /// `ε·H / (2·ρ·tan(fov/2))`: [`ScreenError::of`] solved for the
+    /// distance (in real arithmetic; it may be infinite or NaN).
+    pub fn distance_for(&self, error: f64, px: f64) -> f64 {
+        error * self.h / (2.0 * px * self.t)
+    }
+
     /// Screen-space error in pixels of `error` metres at the distance whose
     /// [`ScreenError::scale`] is `scale`.
     pub fn apply(&self, error: f64, scale: f64) -> f64 {

@@ -475,11 +475,8 @@ impl Refiner {
                 let (s1, s0) = match kind {
                     Kind::Elevation => (self.sse.apply(err1, k), self.sse.apply(err0, k)),
                     Kind::Colour => {
-                        // The footprint's side over the texels across it
-                        // at each LOD, where the LOD adds any colour.
-                        let side = radius.max(0.0) * std::f64::consts::SQRT_2;
-                        let texel1 = side / (width * 0.5).max(1.0);
-                        let texel0 = side / width.max(1.0);
+                        // Where the LOD adds any colour.
+                        let (texel1, texel0) = texel_sizes(radius, width);
                         (
                             if err1 > 0.0 {
                                 self.sse.apply(texel1, k)
@@ -504,21 +501,60 @@ impl Refiner {
         }
     }
 
-    /// Whether a split block of footprint `fp` whose own record's error is
-    /// `err1` surely keeps its children, decided without its full measure:
-    /// with the distance bounded from above by `|eye − centre| +
-    /// sphere_radius` (every bounding point lies in that ball, and each
-    /// term of [`Footprint::distance_from`] is at most the distance to a
-    /// bounding point), its first LOD's screen-space error is still above
-    /// [`MERGE_AT`] of the tolerance. `false` means "measure it" (always
-    /// for the thesis's importance).
-    pub fn surely_keeps_split(&self, fp: &Footprint, err1: f64) -> bool {
+    /// A distance within which a split block surely keeps its children,
+    /// whatever its exact measure: closer than it (and with the near
+    /// distance below it), its first LOD's screen-space error is above
+    /// [`MERGE_AT`] of the tolerance, so [`Refiner::merge`] declines. Its
+    /// first LOD's error is `err1` metres (elevation) or, for colour
+    /// (`err1 > 0`: finer colour exists), the texels of
+    /// [`texel_sizes`]`(radius, width)`. 0 when there is none (the thesis's
+    /// importance, no error, or no finite distance), so that every block
+    /// is measured.
+    ///
+    /// [`ScreenError::distance_for`] inverts the error's formula in real
+    /// arithmetic; the distance is shrunk by 10⁻⁹ of itself, far more than
+    /// the rounding of the forward formula, so that a block closer than it
+    /// is kept by the measured error too.
+    pub fn keeps_split_within(&self, kind: Kind, radius: f64, width: f64, err1: f64) -> f64 {
         if self.policy == Policy::Thesis {
-            return false;
+            return 0.0;
         }
-        let upper = (self.eye - fp.centre).length() + fp.sphere_radius;
+        let error = match kind {
+            Kind::Elevation => err1,
+            Kind::Colour if err1 > 0.0 => texel_sizes(radius, width).0,
+            Kind::Colour => return 0.0,
+        };
+        let d = self.sse.distance_for(error, self.tol * MERGE_AT) * (1.0 - 1e-9);
+        // `scale` clamps distances below 1 mm.
+        if d.is_finite() && d > 1e-3 {
+            d
+        } else {
+            0.0
+        }
+    }
+
+    /// An upper bound of the distance from the eye to a block's footprint
+    /// `fp` (every term of [`Footprint::distance_from`] is at most the
+    /// distance to a bounding point, and the bounding points lie in the
+    /// ball `|x − centre| ≤ sphere_radius`): `|eye − centre| +
+    /// sphere_radius`.
+    pub fn upper_distance(&self, fp: &Footprint) -> f64 {
+        (self.eye - fp.centre).length() + fp.sphere_radius
+    }
+
+    /// The near distance, below which distances count as it
+    /// ([`ScreenError::scale`] of `max(d, near)`).
+    pub fn near(&self) -> f64 {
+        self.near
+    }
+
+    /// Whether a split block of footprint `fp` surely keeps its children
+    /// ([`Refiner::keeps_split_within`] at [`Refiner::upper_distance`]),
+    /// decided without its full measure. `false` means "measure it".
+    pub fn surely_keeps_split(&self, kind: Kind, fp: &Footprint, width: f64, err1: f64) -> bool {
+        let within = self.keeps_split_within(kind, fp.radius, width, err1);
         // NaN compares false: measured.
-        self.sse.apply(err1, self.sse.scale(upper.max(self.near))) > self.tol * MERGE_AT
+        self.upper_distance(fp) < within && self.near < within
     }
 
     /// Whether a split block whose measure is `m` should merge, and the
@@ -701,6 +737,14 @@ impl Refiner {
         let t = if lod == 0 { m.b } else { m.a };
         t.min(self.height)
     }
+}
+
+/// The size in metres of a colour block's texels at its first LOD and at
+/// LOD 0: the footprint's side (`radius·√2`) over the texels across it
+/// (`width / 2`, `width`).
+fn texel_sizes(radius: f64, width: f64) -> (f64, f64) {
+    let side = radius.max(0.0) * std::f64::consts::SQRT_2;
+    (side / (width * 0.5).max(1.0), side / width.max(1.0))
 }
 
 /// Level first, then nearest: `−(level·10¹³ + distance)`.
@@ -917,6 +961,54 @@ mod tests {
             let min = surface_distance(&datum, id, &[h0, h0 + dh * 0.5, h0 + dh], 24, eye);
             // A millimetre of slack per 10 000 km for rounding.
             prop_assert!(dist <= min + 1e-3 + min * 1e-10, "{} > {} at {:?}", dist, min, id);
+        }
+    }
+
+    proptest! {
+        /// A split block that [`Refiner::surely_keeps_split`] keeps is not
+        /// merged by its measure, at the eye it was asked at and at any eye
+        /// within the slack `within − upper` of it (what the selector's
+        /// odometer relies on), for both kinds, blocks at every level,
+        /// tolerances from 0.01 to 100 px, fields of view from 1° to 170°
+        /// and eyes from 1 m to 1000 Earth radii from the surface.
+        #[test]
+        fn surely_kept_splits_do_not_merge(
+            face in 0u8..6, level in 0u8..16, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
+            dir in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+            step in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0, 0.0f64..1.0),
+            alt_log in 0.0f64..10.0, tol_log in -2.0f64..2.0, fov in 1.0f64..170.0,
+            err_log in -3.0f64..4.0, colour in proptest::bool::ANY,
+        ) {
+            use planet_core::{BlockId, Datum, Face};
+            let datum = Datum::WGS84;
+            let n = 1u32 << level;
+            let (x, y) = (((fx * n as f64) as u32).min(n - 1), ((fy * n as f64) as u32).min(n - 1));
+            let id = BlockId::new(Face::new(face).expect("face"), level, x, y).expect("id");
+            let fp = Footprint::of(&BlockBounds::new(&datum, id, -400.0, 2000.0));
+            let d = DVec3::new(dir.0, dir.1, dir.2);
+            let d = if d.length() < 1e-6 { DVec3::X } else { d.normalize() };
+            let eye = d * (datum.equatorial_radius() + 10f64.powf(alt_log));
+            let at = |eye: DVec3| {
+                let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
+                c.fov_y = fov.to_radians();
+                Refiner::new(Policy::Ours, &View::new(&c, 6.35e6, 6.38e6), 1e4, 10f64.powf(tol_log))
+            };
+            let (kind, width) = if colour { (Kind::Colour, 256.0) } else { (Kind::Elevation, 64.0) };
+            let err1 = 10f64.powf(err_log);
+            let r = at(eye);
+            let kept = r.surely_keeps_split(kind, &fp, width, err1);
+            if kept {
+                prop_assert_eq!(r.merge(&r.measure(kind, &fp, width, err1, 0.0)), None);
+                // An eye moved by less than the slack.
+                let within = r.keeps_split_within(kind, fp.radius, width, err1);
+                let slack = within - r.upper_distance(&fp);
+                let s = DVec3::new(step.0, step.1, step.2);
+                let s = if s.length() < 1e-6 { DVec3::X } else { s.normalize() };
+                let moved = at(eye + s * (slack * step.3 * (1.0 - 1e-6)));
+                if moved.near() < within {
+                    prop_assert_eq!(moved.merge(&moved.measure(kind, &fp, width, err1, 0.0)), None);
+                }
+            }
         }
     }
 

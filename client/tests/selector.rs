@@ -191,6 +191,75 @@ fn selector_splices_while_moving_across_faces() {
     assert!(splices >= 50, "{splices} splices");
 }
 
+/// A split block found surely kept (its first LOD's error above the merge
+/// threshold as far as the eye may be from it, thesis §3.6's coherence) is
+/// not measured again until the eye has travelled that slack, and a new
+/// tolerance or viewport forgets every such finding. Here the tolerance
+/// grows, the viewport shrinks and the eye climbs in small steps, each
+/// making blocks merge that were kept just before: the selection must be
+/// the reference's every time, with those merges (asserted, so that the
+/// test is not vacuous).
+const TOL: f64 = 0.001;
+
+#[test]
+fn kept_splits_merge_when_the_tolerance_viewport_or_eye_change() {
+    let mut c = sse_client(TOL, 0);
+    let mut s = FakeServer::new(0);
+    let mut sel = Selector::new();
+    let base = DVec3::new(1.0, 0.2, 0.3);
+    // `shift` moves the eye back along the ground.
+    let at = |alt: f64, shift: f64| {
+        let dir = base - DVec3::new(0.0, shift, 0.0);
+        let eye = surface(dir, alt);
+        let target = surface(dir + DVec3::new(0.0, 0.05, 0.0), 0.0);
+        Camera::look_at(eye, target, eye.normalize())
+    };
+    let cam = at(30_000.0, 0.0);
+    for _ in 0..300 {
+        checked_step(&mut c, &mut s, &mut sel, &cam);
+    }
+    let tree = c.tree().clone();
+    let (r_min, r_max) = c.radii();
+    let mut merges = |cam: &Camera, tol: f64| {
+        let view = View::new(cam, r_min, r_max);
+        let r = Refiner::new(Policy::Ours, &view, 1e5, tol);
+        let want = select(&tree, &view, &r, None);
+        assert_eq!(sel.select(&tree, &view, &r, None), want, "at {tol} px");
+        want.ops.iter().filter(|o| o.kind == OpKind::Merge).count()
+    };
+    let settled = merges(&cam, TOL);
+    let looser = merges(&cam, TOL * 128.0);
+    assert!(
+        looser > settled,
+        "{looser} merges at 128 times the tolerance, {settled} at it"
+    );
+    merges(&cam, TOL);
+    let mut small = cam;
+    small.viewport_height_px /= 128.0;
+    let smaller = merges(&small, TOL);
+    assert!(
+        smaller > settled,
+        "{smaller} merges on 1/128 of the viewport"
+    );
+    // Flying back at the same height (the near distance stays), then
+    // climbing by 4 % of the height a frame, at tolerances where blocks
+    // kept at the start merge on the way.
+    let (tol, start) = (TOL * 8.0, merges(&cam, TOL * 8.0));
+    let flown: Vec<usize> = (1..=120)
+        .map(|k| merges(&at(30_000.0, k as f64 * 0.01), tol))
+        .collect();
+    let (tol, start2) = (TOL * 16.0, merges(&cam, TOL * 16.0));
+    let climbed: Vec<usize> = (1..=120)
+        .map(|k| merges(&at(30_000.0 * 1.04f64.powi(k), 1.2), tol))
+        .collect();
+    for (leg, start, m) in [("flying back", start, flown), ("climbing", start2, climbed)] {
+        assert!(
+            m.iter().filter(|m| **m > start).count() >= 3,
+            "merges while {leg}: {m:?}"
+        );
+    }
+}
+
 /// Another tree value (even a clone of the same tree) is never served from
 /// the cache of the first.
 #[test]

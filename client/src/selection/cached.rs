@@ -143,6 +143,9 @@ pub struct Selector {
     /// Cold slots ([`Hot::slot`]) and the free ones.
     cold: Vec<Cold>,
     free: Vec<u32>,
+    /// Nodes placed since the slots were last in pre-order
+    /// ([`Selector::compact_cold`]).
+    scattered: usize,
     ids: Vec<BlockId>,
     cnodes: Vec<CNode>,
     /// Per elevation node: children (by child index), the deepest nodes
@@ -184,7 +187,8 @@ pub struct Selector {
     memo_key: Option<MemoKey>,
     memo_gen: u64,
     memo: Vec<Memo>,
-    cmemo: Vec<(u64, Measure)>,
+    cmemo: Vec<CMemo>,
+    odometer: Odometer,
 }
 
 /// Emptied buffers of the arrays replaced by the last splice, reused by the
@@ -197,7 +201,7 @@ struct Spare {
     memo: Vec<Memo>,
     col: Vec<u32>,
     cnodes: Vec<CNode>,
-    cmemo: Vec<(u64, Measure)>,
+    cmemo: Vec<CMemo>,
     children: Vec<[u32; 4]>,
     flags: Vec<bool>,
     cflags: Vec<bool>,
@@ -257,6 +261,103 @@ struct Memo {
     /// The LOD `sse` was computed for (`NOT_DRAWN`: none).
     sse_lod: u8,
     sse: f64,
+    keep: Keep,
+}
+
+/// A colour node's [`Memo`] (no drawn error: a colour leaf's drawn LOD is
+/// all that is drawn of it).
+#[derive(Debug, Clone, Copy, Default)]
+struct CMemo {
+    gen: u64,
+    m: Measure,
+    keep: Keep,
+}
+
+/// A split node found surely kept ([`Refiner::keeps_split_within`]) at
+/// an earlier eye: it still is while the selector's odometer
+/// ([`Odometer`]) reads below `until` and the near distance is below
+/// `within`, and the frame loop then reads nothing else of it (its
+/// [`Cold`] slot, which would cost a cache miss, stays untouched).
+#[derive(Debug, Clone, Copy)]
+struct Keep {
+    until: f64,
+    within: f64,
+}
+
+impl Default for Keep {
+    fn default() -> Keep {
+        Keep {
+            until: f64::NEG_INFINITY,
+            within: 0.0,
+        }
+    }
+}
+
+impl Keep {
+    fn holds(&self, odo: f64, refiner: &Refiner) -> bool {
+        odo < self.until && refiner.near() < self.within
+    }
+
+    /// Whether a split node of footprint `fp` surely keeps its children
+    /// now ([`Refiner::surely_keeps_split`]); if so, remember for how far
+    /// the eye may travel (odometer `odo`) before it must be asked again:
+    /// the eye moving by `s` moves the upper distance by at most `s`. The
+    /// margin (10⁻⁹ of the slack and 1 mm) covers the rounding of the
+    /// odometer's sums and of the upper distance.
+    fn refresh(&mut self, odo: f64, refiner: &Refiner, within: f64, fp: &Footprint) -> bool {
+        let upper = refiner.upper_distance(fp);
+        // NaN compares false: measured.
+        if upper < within && refiner.near() < within {
+            self.within = within;
+            self.until = odo + (within - upper) * (1.0 - 1e-9) - 1e-3;
+            true
+        } else {
+            self.until = f64::NEG_INFINITY;
+            false
+        }
+    }
+}
+
+/// The length of the path the eye has travelled between frames (thesis
+/// §3.6's frame-to-frame coherence): the eye's distance to anything moves
+/// by at most that much, so a bound found at an earlier eye holds while
+/// the path since is shorter than its slack ([`Keep`]). Reset (with every
+/// [`Keep`]) when a step is not finite, when what the bounds depend on
+/// besides the eye changes ([`Odometer::key`]), and after
+/// [`Odometer::RESET_M`], so that its sums stay exact to far below a
+/// millimetre.
+#[derive(Debug, Clone, Copy, Default)]
+struct Odometer {
+    len: f64,
+    eye: Option<DVec3>,
+    key: Option<[u64; 5]>,
+}
+
+impl Odometer {
+    const RESET_M: f64 = 1e6;
+
+    /// What [`Refiner::keeps_split_within`] depends on besides the node:
+    /// viewport height, field of view, tolerance, policy and quality factor
+    /// ([`MemoKey`] without the eye and the near distance, which
+    /// [`Keep::holds`] checks every frame).
+    fn key(k: &MemoKey) -> [u64; 5] {
+        [k.0[3], k.0[4], k.0[5], k.0[7], k.0[8]]
+    }
+
+    /// Advance to `eye`; `false` when every [`Keep`] must be forgotten.
+    fn step(&mut self, eye: DVec3, key: [u64; 5]) -> bool {
+        let s = self.eye.map_or(f64::INFINITY, |p| (eye - p).length());
+        self.eye = Some(eye);
+        let same = self.key == Some(key);
+        self.key = Some(key);
+        if same && s.is_finite() && self.len + s < Self::RESET_M {
+            self.len += s;
+            true
+        } else {
+            self.len = 0.0;
+            false
+        }
+    }
 }
 
 impl Selector {
@@ -349,7 +450,7 @@ impl Selector {
                     c.lod = n.lod;
                     c.splittable = n.can_split_data().is_ok();
                     c.err0 = n.child_error();
-                    self.cmemo[j as usize].0 = 0;
+                    self.cmemo[j as usize].gen = 0;
                 }
             }
         }
@@ -363,6 +464,7 @@ impl Selector {
             NONE => self.roots[id.face.index() as usize] = i,
             p => self.children[p as usize][id.child_index()] = i,
         }
+        self.scattered += 1;
         hot.slot = match self.free.pop() {
             Some(s) => {
                 self.cold[s as usize] = cold;
@@ -483,6 +585,41 @@ impl Selector {
         self.scratch = cov;
     }
 
+    /// Move the [`Cold`] slots back into pre-order (node `i` in slot `i`)
+    /// and drop the free ones. A splice places re-read nodes in freed slots
+    /// or at the end, out of order; once many are (more than 1/16 of the
+    /// nodes), the frame loop, which reads the slots of visible leaves in
+    /// pre-order, would miss the cache on more of them than the moves cost.
+    fn compact_cold(&mut self) {
+        let n = self.hot.len();
+        // The node in each slot (`NONE`: free).
+        let mut owner = std::mem::take(&mut self.scratch);
+        owner.clear();
+        owner.resize(self.cold.len(), NONE);
+        for (i, h) in self.hot.iter().enumerate() {
+            owner[h.slot as usize] = i as u32;
+        }
+        // Slots below `i` hold nodes below `i`, so node `i`'s is at `i` or
+        // after: swap it down, and follow the node that was at `i`.
+        for i in 0..n {
+            let s = self.hot[i].slot as usize;
+            if s != i {
+                self.cold.swap(i, s);
+                let j = owner[i];
+                if j != NONE {
+                    self.hot[j as usize].slot = s as u32;
+                }
+                owner[s] = j;
+                owner[i] = i as u32;
+                self.hot[i].slot = i as u32;
+            }
+        }
+        self.cold.truncate(n);
+        self.free.clear();
+        self.scattered = 0;
+        self.scratch = owner;
+    }
+
     fn clear(&mut self) {
         self.hot.clear();
         self.ids.clear();
@@ -524,6 +661,8 @@ impl Selector {
                 }
             }
         }
+        // Read in pre-order into an empty slot array: in order.
+        self.scattered = 0;
         self.union_subtree_balls(0..n);
         for i in 0..n {
             let nb = std::array::from_fn(|k| self.neighbour_of(i, k));
@@ -541,7 +680,7 @@ impl Selector {
                         continue;
                     }
                     self.col_of_elev[elev as usize] = self.cnodes.len() as u32;
-                    self.cmemo.push((0, Measure::default()));
+                    self.cmemo.push(CMemo::default());
                     self.cnodes.push(CNode {
                         id,
                         elev,
@@ -767,7 +906,7 @@ impl Selector {
                         record: cn.record,
                         err0: cn.child_error(),
                     };
-                    (c, (0, Measure::default()))
+                    (c, CMemo::default())
                 };
                 self.col_of_elev[i] = self.cnodes.len() as u32;
                 self.cnodes.push(c);
@@ -775,6 +914,9 @@ impl Selector {
             }
         }
         self.bind_colours();
+        if self.scattered > n / 16 {
+            self.compact_cold();
+        }
         // Keep the old buffers (emptied) for the next splice.
         sp = Spare {
             ids: old_ids,
@@ -890,6 +1032,15 @@ impl Selector {
             self.memo_gen += 1;
         }
         let gen = self.memo_gen;
+        if !self.odometer.step(view.camera.eye, Odometer::key(&key)) {
+            for m in &mut self.memo {
+                m.keep = Keep::default();
+            }
+            for m in &mut self.cmemo {
+                m.keep = Keep::default();
+            }
+        }
+        let odo = self.odometer.len;
         let n = self.hot.len();
         self.state.clear();
         self.state.resize(n, 0);
@@ -929,8 +1080,13 @@ impl Selector {
                 // most are surely kept, which needs no measure.
                 let m = &mut self.memo[i];
                 if m.gen != gen {
+                    if m.keep.holds(odo, refiner) {
+                        continue;
+                    }
                     let c = &self.cold[h.slot as usize];
-                    if refiner.surely_keeps_split(&c.fp, c.err1) {
+                    let within =
+                        refiner.keeps_split_within(Kind::Elevation, c.fp.radius, ew, c.err1);
+                    if m.keep.refresh(odo, refiner, within, &c.fp) {
                         continue;
                     }
                     m.gen = gen;
@@ -1041,14 +1197,26 @@ impl Selector {
                 if !c.split && !bound[j] {
                     continue;
                 }
+                let m = &mut self.cmemo[j];
+                // Split blocks only ask whether to merge; most are surely
+                // kept (as for elevation).
+                if c.split && m.gen != gen && m.keep.holds(odo, refiner) {
+                    continue;
+                }
                 // Its elevation node's footprint (§4.4.3).
                 let fp = &self.cold[self.hot[c.elev as usize].slot as usize].fp;
-                let m = &mut self.cmemo[j];
-                if m.0 != gen {
+                if m.gen != gen {
                     let err1 = c.record.error as f64;
-                    *m = (gen, refiner.measure(Kind::Colour, fp, cw, err1, c.err0));
+                    if c.split {
+                        let within = refiner.keeps_split_within(Kind::Colour, fp.radius, cw, err1);
+                        if m.keep.refresh(odo, refiner, within, fp) {
+                            continue;
+                        }
+                    }
+                    m.gen = gen;
+                    m.m = refiner.measure(Kind::Colour, fp, cw, err1, c.err0);
                 }
-                let mm = m.1;
+                let mm = m.m;
                 if c.split {
                     if let Some(p) = refiner.merge(&mm) {
                         let err = (c.record.error as f64, c.err0);
@@ -1104,22 +1272,21 @@ impl Selector {
         self.cbound = bound;
         // Neighbour LODs and colour bindings (split and hidden nodes have
         // no drawn LOD).
+        let (drawn, ids) = (&self.drawn, &self.ids);
         for (d, &(i, binding)) in cx.out.draw.iter_mut().zip(&self.draw_idx) {
-            for (k, &j) in self.nb[i as usize].iter().enumerate() {
-                if j == NONE {
-                    continue;
+            let (lod, level) = (d.lod as i32, d.block.level as i32);
+            // `NONE` is past the end of `drawn`: no neighbour.
+            for (n, &j) in d.neighbours.iter_mut().zip(&self.nb[i as usize]) {
+                if let Some(&nlod) = drawn.get(j as usize) {
+                    if nlod != NOT_DRAWN {
+                        let nid = ids[j as usize];
+                        *n = Some(NeighbourLod {
+                            block: nid,
+                            lod: nlod,
+                            lod_diff: (nlod as i32 - lod) + (level - nid.level as i32),
+                        });
+                    }
                 }
-                let nlod = self.drawn[j as usize];
-                if nlod == NOT_DRAWN {
-                    continue;
-                }
-                let nid = self.ids[j as usize];
-                d.neighbours[k] = Some(NeighbourLod {
-                    block: nid,
-                    lod: nlod,
-                    lod_diff: (nlod as i32 - d.lod as i32)
-                        + (d.block.level as i32 - nid.level as i32),
-                });
             }
             d.colour = match binding {
                 Binding::None => None,
