@@ -550,11 +550,21 @@ impl Refiner {
 
     /// Whether a split block of footprint `fp` surely keeps its children
     /// ([`Refiner::keeps_split_within`] at [`Refiner::upper_distance`]),
-    /// decided without its full measure. `false` means "measure it".
-    pub fn surely_keeps_split(&self, kind: Kind, fp: &Footprint, width: f64, err1: f64) -> bool {
+    /// decided without its full measure: `Some((within, slack))` if so,
+    /// where `slack = within − upper` is how far the eye may move before
+    /// that can change (`upper` moves by at most as much as the eye).
+    /// `None` means "measure it".
+    pub fn keep_slack(
+        &self,
+        kind: Kind,
+        fp: &Footprint,
+        width: f64,
+        err1: f64,
+    ) -> Option<(f64, f64)> {
         let within = self.keeps_split_within(kind, fp.radius, width, err1);
+        let upper = self.upper_distance(fp);
         // NaN compares false: measured.
-        self.upper_distance(fp) < within && self.near < within
+        (upper < within && self.near < within).then_some((within, within - upper))
     }
 
     /// Whether a split block whose measure is `m` should merge, and the
@@ -955,7 +965,7 @@ mod tests {
             let dist = fp.distance(eye);
             prop_assert!(!dist.is_nan());
             prop_assert!(dist >= (eye - b.centre).length() - b.sphere_radius - 1e-6);
-            // The upper bound Refiner::surely_keeps_split relies on.
+            // The upper bound Refiner::keep_slack relies on.
             let upper = (eye - b.centre).length() + b.sphere_radius;
             prop_assert!(dist <= upper * (1.0 + 1e-12), "{dist} > {upper}");
             let min = surface_distance(&datum, id, &[h0, h0 + dh * 0.5, h0 + dh], 24, eye);
@@ -965,7 +975,7 @@ mod tests {
     }
 
     proptest! {
-        /// A split block that [`Refiner::surely_keeps_split`] keeps is not
+        /// A split block that [`Refiner::keep_slack`] keeps is not
         /// merged by its measure, at the eye it was asked at and at any eye
         /// within the slack `within − upper` of it (what the selector's
         /// odometer relies on), for both kinds, blocks at every level,
@@ -996,12 +1006,9 @@ mod tests {
             let (kind, width) = if colour { (Kind::Colour, 256.0) } else { (Kind::Elevation, 64.0) };
             let err1 = 10f64.powf(err_log);
             let r = at(eye);
-            let kept = r.surely_keeps_split(kind, &fp, width, err1);
-            if kept {
+            if let Some((within, slack)) = r.keep_slack(kind, &fp, width, err1) {
                 prop_assert_eq!(r.merge(&r.measure(kind, &fp, width, err1, 0.0)), None);
                 // An eye moved by less than the slack.
-                let within = r.keeps_split_within(kind, fp.radius, width, err1);
-                let slack = within - r.upper_distance(&fp);
                 let s = DVec3::new(step.0, step.1, step.2);
                 let s = if s.length() < 1e-6 { DVec3::X } else { s.normalize() };
                 let moved = at(eye + s * (slack * step.3 * (1.0 - 1e-6)));

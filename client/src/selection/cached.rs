@@ -298,23 +298,20 @@ impl Keep {
         odo < self.until && refiner.near() < self.within
     }
 
-    /// Whether a split node of footprint `fp` surely keeps its children
-    /// now ([`Refiner::surely_keeps_split`]); if so, remember for how far
-    /// the eye may travel (odometer `odo`) before it must be asked again:
-    /// the eye moving by `s` moves the upper distance by at most `s`. The
-    /// margin (10⁻⁹ of the slack and 1 mm) covers the rounding of the
-    /// odometer's sums and of the upper distance.
-    fn refresh(&mut self, odo: f64, refiner: &Refiner, within: f64, fp: &Footprint) -> bool {
-        let upper = refiner.upper_distance(fp);
-        // NaN compares false: measured.
-        if upper < within && refiner.near() < within {
-            self.within = within;
-            self.until = odo + (within - upper) * (1.0 - 1e-9) - 1e-3;
-            true
-        } else {
-            self.until = f64::NEG_INFINITY;
-            false
-        }
+    /// [`Refiner::keep_slack`] asked at odometer reading `odo`: remember
+    /// (if kept) how far the eye may travel before the node must be asked
+    /// again. The margin (10⁻⁹ of the slack and 1 mm) covers the rounding
+    /// of the odometer's sums and of the upper distance. Whether it is
+    /// kept now.
+    fn refresh(&mut self, odo: f64, slack: Option<(f64, f64)>) -> bool {
+        *self = match slack {
+            Some((within, slack)) => Keep {
+                until: odo + slack * (1.0 - 1e-9) - 1e-3,
+                within,
+            },
+            None => Keep::default(),
+        };
+        slack.is_some()
     }
 }
 
@@ -337,11 +334,18 @@ impl Odometer {
     const RESET_M: f64 = 1e6;
 
     /// What [`Refiner::keeps_split_within`] depends on besides the node:
-    /// viewport height, field of view, tolerance, policy and quality factor
-    /// ([`MemoKey`] without the eye and the near distance, which
-    /// [`Keep::holds`] checks every frame).
-    fn key(k: &MemoKey) -> [u64; 5] {
-        [k.0[3], k.0[4], k.0[5], k.0[7], k.0[8]]
+    /// viewport height, field of view and the refiner's
+    /// [`Refiner::memo_key`] but the near distance (which [`Keep::holds`]
+    /// checks every frame).
+    fn key(view: &View, refiner: &Refiner) -> [u64; 5] {
+        let [tol, _near, policy, qf] = refiner.memo_key();
+        [
+            view.camera.viewport_height_px.to_bits(),
+            view.camera.fov_y.to_bits(),
+            tol,
+            policy,
+            qf,
+        ]
     }
 
     /// Advance to `eye`; `false` when every [`Keep`] must be forgotten.
@@ -1032,7 +1036,10 @@ impl Selector {
             self.memo_gen += 1;
         }
         let gen = self.memo_gen;
-        if !self.odometer.step(view.camera.eye, Odometer::key(&key)) {
+        if !self
+            .odometer
+            .step(view.camera.eye, Odometer::key(view, refiner))
+        {
             for m in &mut self.memo {
                 m.keep = Keep::default();
             }
@@ -1084,9 +1091,8 @@ impl Selector {
                         continue;
                     }
                     let c = &self.cold[h.slot as usize];
-                    let within =
-                        refiner.keeps_split_within(Kind::Elevation, c.fp.radius, ew, c.err1);
-                    if m.keep.refresh(odo, refiner, within, &c.fp) {
+                    let slack = refiner.keep_slack(Kind::Elevation, &c.fp, ew, c.err1);
+                    if m.keep.refresh(odo, slack) {
                         continue;
                     }
                     m.gen = gen;
@@ -1207,11 +1213,11 @@ impl Selector {
                 let fp = &self.cold[self.hot[c.elev as usize].slot as usize].fp;
                 if m.gen != gen {
                     let err1 = c.record.error as f64;
-                    if c.split {
-                        let within = refiner.keeps_split_within(Kind::Colour, fp.radius, cw, err1);
-                        if m.keep.refresh(odo, refiner, within, fp) {
-                            continue;
-                        }
+                    if c.split
+                        && m.keep
+                            .refresh(odo, refiner.keep_slack(Kind::Colour, fp, cw, err1))
+                    {
+                        continue;
                     }
                     m.gen = gen;
                     m.m = refiner.measure(Kind::Colour, fp, cw, err1, c.err0);
