@@ -506,8 +506,8 @@ impl Refiner {
     /// distance below it), its first LOD's screen-space error is above
     /// [`MERGE_AT`] of the tolerance, so [`Refiner::merge`] declines. Its
     /// first LOD's error is `err1` metres (elevation) or, for colour
-    /// (`err1 > 0`: finer colour exists), the texels of
-    /// [`texel_sizes`]`(radius, width)`. 0 when there is none (the thesis's
+    /// (`err1 > 0`: finer colour exists), its texels at its first LOD
+    /// (the footprint's side `radius·√2` over `width / 2`). 0 when there is none (the thesis's
     /// importance, no error, or no finite distance), so that every block
     /// is measured.
     ///

@@ -135,7 +135,12 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 ///   not on the view direction: they are kept per node while the eye,
 ///   quality factor, near distance and viewport stay the same (a camera
 ///   turning on the spot recomputes only visibility); hidden leaves skip
-///   them, and split blocks take the logarithm only where they may merge.
+///   them, and split blocks take the logarithm only where they may merge;
+/// - a split block found surely kept ([`Refiner::keep_slack`]) is not
+///   asked again until the eye has travelled its slack (an odometer of the
+///   eye's path), so that a moving frame reads nothing of it but its memo;
+///   the rest of what a node keeps stays untouched, and is moved back into
+///   pre-order when splices have scattered it.
 #[derive(Debug, Default)]
 pub struct Selector {
     stamp: Option<TreeStamp>,
