@@ -567,6 +567,57 @@ impl Refiner {
         (upper < within && self.near < within).then_some((within, within - upper))
     }
 
+    /// For a colour leaf at its finest (LOD 0 loaded, no children to split
+    /// into), drawn at `lod` now: the only thing [`Refiner::leaf`] decides
+    /// for it is that LOD, by one threshold on its distance (LOD 0 while
+    /// its first LOD's texels project above [`KEEP_LOD0`] of the
+    /// tolerance). `Some((within, slack))` when that LOD surely stays
+    /// while the eye moves less than `slack` and the near distance stays
+    /// below `within`:
+    ///
+    /// - drawn at LOD 1: the footprint's distance is at least the ball's,
+    ///   `|eye − centre| − sphere_radius`, which moves by at most as much
+    ///   as the eye, and the near distance only raises it;
+    /// - drawn at LOD 0: the distance is at most
+    ///   [`Refiner::upper_distance`], likewise.
+    ///
+    /// The threshold distance is shrunk or grown by 10⁻⁹ of itself, far
+    /// more than the rounding of the forward formula. `None`: measure it
+    /// (the thesis's importance, or no margin).
+    pub fn finest_colour_slack(
+        &self,
+        fp: &Footprint,
+        width: f64,
+        err1: f64,
+        lod: u8,
+    ) -> Option<(f64, f64)> {
+        if self.policy == Policy::Thesis {
+            return None;
+        }
+        if err1 <= 0.0 {
+            // No finer colour: no error at its first LOD, drawn there.
+            return (lod == 1).then_some((f64::INFINITY, f64::INFINITY));
+        }
+        let threshold = self.tol * KEEP_LOD0.min(1.0);
+        let d = self
+            .sse
+            .distance_for(texel_sizes(fp.radius, width).0, threshold);
+        // `scale` clamps distances below 1 mm.
+        if !(d.is_finite() && d > 1e-3) {
+            return None;
+        }
+        // NaN compares false: measured.
+        if lod == 1 {
+            let lo = d * (1.0 + 1e-9);
+            let ball = (self.eye - fp.centre).length() - fp.sphere_radius;
+            (ball > lo).then_some((f64::INFINITY, ball - lo))
+        } else {
+            let hi = d * (1.0 - 1e-9);
+            let upper = self.upper_distance(fp);
+            (upper < hi && self.near < hi).then_some((hi, hi - upper))
+        }
+    }
+
     /// Whether a split block whose measure is `m` should merge, and the
     /// operation's priority.
     pub fn merge(&self, m: &Measure) -> Option<f64> {
@@ -1014,6 +1065,51 @@ mod tests {
                 let moved = at(eye + s * (slack * step.3 * (1.0 - 1e-6)));
                 if moved.near() < within {
                     prop_assert_eq!(moved.merge(&moved.measure(kind, &fp, width, err1, 0.0)), None);
+                }
+            }
+        }
+    }
+
+    proptest! {
+        /// A colour leaf at its finest keeps the LOD it is drawn at now
+        /// ([`Refiner::leaf`]) at any eye within the slack of
+        /// [`Refiner::finest_colour_slack`] (with the near distance below
+        /// its bound), at LOD 0 and at LOD 1, for blocks at every level,
+        /// tolerances from 0.01 to 100 px, fields of view from 1° to 170°
+        /// and eyes from 1 m to 1000 Earth radii from the surface.
+        #[test]
+        fn finest_colour_leaves_keep_their_lod_within_the_slack(
+            face in 0u8..6, level in 0u8..16, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
+            dir in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+            step in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0, 0.0f64..1.0),
+            alt_log in 0.0f64..10.0, tol_log in -2.0f64..2.0, fov in 1.0f64..170.0,
+            width_log in 2u32..9, no_finer in proptest::bool::weighted(0.1),
+        ) {
+            use planet_core::{BlockId, Datum, Face};
+            let datum = Datum::WGS84;
+            let n = 1u32 << level;
+            let (x, y) = (((fx * n as f64) as u32).min(n - 1), ((fy * n as f64) as u32).min(n - 1));
+            let id = BlockId::new(Face::new(face).expect("face"), level, x, y).expect("id");
+            let fp = Footprint::of(&BlockBounds::new(&datum, id, -400.0, 2000.0));
+            let d = DVec3::new(dir.0, dir.1, dir.2);
+            let d = if d.length() < 1e-6 { DVec3::X } else { d.normalize() };
+            let eye = d * (datum.equatorial_radius() + 10f64.powf(alt_log));
+            let at = |eye: DVec3| {
+                let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
+                c.fov_y = fov.to_radians();
+                Refiner::new(Policy::Ours, &View::new(&c, 6.35e6, 6.38e6), 1e4, 10f64.powf(tol_log))
+            };
+            let width = f64::from(1u32 << width_log);
+            let err1 = if no_finer { 0.0 } else { 1.0 };
+            let lod_at = |r: &Refiner| r.leaf(&r.measure(Kind::Colour, &fp, width, err1, 0.0), 0).lod;
+            let r = at(eye);
+            let lod = lod_at(&r);
+            if let Some((within, slack)) = r.finest_colour_slack(&fp, width, err1, lod) {
+                let s = DVec3::new(step.0, step.1, step.2);
+                let s = if s.length() < 1e-6 { DVec3::X } else { s.normalize() };
+                let moved = at(eye + s * (slack.min(1e12) * step.3 * (1.0 - 1e-6)));
+                if moved.near() < within {
+                    prop_assert_eq!(lod_at(&moved), lod, "slack {}", slack);
                 }
             }
         }

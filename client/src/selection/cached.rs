@@ -270,12 +270,15 @@ struct Memo {
 }
 
 /// A colour node's [`Memo`] (no drawn error: a colour leaf's drawn LOD is
-/// all that is drawn of it).
+/// all that is drawn of it). `keep` holds for a split node (surely kept)
+/// or for a leaf at its finest, whose drawn LOD `lod` surely stays
+/// ([`Refiner::finest_colour_slack`]).
 #[derive(Debug, Clone, Copy, Default)]
 struct CMemo {
     gen: u64,
     m: Measure,
     keep: Keep,
+    lod: u8,
 }
 
 /// A split node found surely kept ([`Refiner::keeps_split_within`]) at
@@ -447,9 +450,12 @@ impl Selector {
                 h.splittable = n.can_split_data().is_ok();
                 self.cold[h.slot as usize].err0 = n.child_error();
                 // Generation 0 is never valid: the measure (LOD 0's error
-                // came with the record) and the error are recomputed.
-                self.memo[i].gen = 0;
-                self.memo[i].sse_lod = NOT_DRAWN;
+                // came with the record) and the error are recomputed, and
+                // what was kept is forgotten.
+                self.memo[i] = Memo {
+                    sse_lod: NOT_DRAWN,
+                    ..Memo::default()
+                };
             }
             Tree::Colour => {
                 let j = self.col_of_elev[i];
@@ -459,7 +465,7 @@ impl Selector {
                     c.lod = n.lod;
                     c.splittable = n.can_split_data().is_ok();
                     c.err0 = n.child_error();
-                    self.cmemo[j as usize].gen = 0;
+                    self.cmemo[j as usize] = CMemo::default();
                 }
             }
         }
@@ -1210,14 +1216,20 @@ impl Selector {
                 }
                 let m = &mut self.cmemo[j];
                 // Split blocks only ask whether to merge; most are surely
-                // kept (as for elevation).
-                if c.split && m.gen != gen && m.keep.holds(odo, refiner) {
+                // kept (as for elevation). A leaf at its finest only has its
+                // drawn LOD to decide, which mostly stays.
+                let finest = !c.split && c.lod == 0 && !c.splittable;
+                if m.gen != gen && (c.split || finest) && m.keep.holds(odo, refiner) {
+                    if finest {
+                        self.cdrawn[j] = m.lod;
+                    }
                     continue;
                 }
                 // Its elevation node's footprint (§4.4.3).
                 let fp = &self.cold[self.hot[c.elev as usize].slot as usize].fp;
-                if m.gen != gen {
-                    let err1 = c.record.error as f64;
+                let err1 = c.record.error as f64;
+                let measured = m.gen != gen;
+                if measured {
                     if c.split
                         && m.keep
                             .refresh(odo, refiner.keep_slack(Kind::Colour, fp, cw, err1))
@@ -1228,6 +1240,12 @@ impl Selector {
                     m.m = refiner.measure(Kind::Colour, fp, cw, err1, c.err0);
                 }
                 let mm = m.m;
+                if finest && measured {
+                    let lod = refiner.leaf(&mm, c.lod).lod;
+                    m.keep
+                        .refresh(odo, refiner.finest_colour_slack(fp, cw, err1, lod));
+                    m.lod = lod;
+                }
                 if c.split {
                     if let Some(p) = refiner.merge(&mm) {
                         let err = (c.record.error as f64, c.err0);
