@@ -136,11 +136,13 @@ fn ball_union(a: (DVec3, f64), b: (DVec3, f64)) -> (DVec3, f64) {
 ///   quality factor, near distance and viewport stay the same (a camera
 ///   turning on the spot recomputes only visibility); hidden leaves skip
 ///   them, and split blocks take the logarithm only where they may merge;
-/// - a split block found surely kept ([`Refiner::keep_slack`]) is not
-///   asked again until the eye has travelled its slack (an odometer of the
-///   eye's path), so that a moving frame reads nothing of it but its memo;
-///   the rest of what a node keeps stays untouched, and is moved back into
-///   pre-order when splices have scattered it.
+/// - a split block found surely kept ([`Refiner::keep_slack`]), and a
+///   colour leaf at its finest whose drawn LOD surely stays
+///   ([`Refiner::finest_colour_slack`]), are not asked again until the eye
+///   has travelled their slack (an odometer of the eye's path), so that a
+///   moving frame reads nothing of them but their memo; the rest of what a
+///   node keeps stays untouched, and is moved back into pre-order when
+///   splices have scattered it.
 #[derive(Debug, Default)]
 pub struct Selector {
     stamp: Option<TreeStamp>,
@@ -281,11 +283,13 @@ struct CMemo {
     lod: u8,
 }
 
-/// A split node found surely kept ([`Refiner::keeps_split_within`]) at
-/// an earlier eye: it still is while the selector's odometer
-/// ([`Odometer`]) reads below `until` and the near distance is below
-/// `within`, and the frame loop then reads nothing else of it (its
-/// [`Cold`] slot, which would cost a cache miss, stays untouched).
+/// A split node found surely kept ([`Refiner::keep_slack`]), or a colour
+/// leaf at its finest found keeping its drawn LOD
+/// ([`Refiner::finest_colour_slack`]), at an earlier eye: it still is
+/// while the selector's odometer ([`Odometer`]) reads below `until` and the
+/// near distance is below `within`, and the frame loop then reads nothing
+/// else of it (its [`Cold`] slot, which would cost a cache miss, stays
+/// untouched).
 #[derive(Debug, Clone, Copy)]
 struct Keep {
     until: f64,
