@@ -345,7 +345,8 @@ struct Odometer {
 impl Odometer {
     const RESET_M: f64 = 1e6;
 
-    /// What [`Refiner::keeps_split_within`] depends on besides the node:
+    /// What [`Refiner::keep_slack`] and [`Refiner::finest_colour_slack`]
+    /// depend on besides the node and the eye:
     /// viewport height, field of view and the refiner's
     /// [`Refiner::memo_key`] but the near distance (which [`Keep::holds`]
     /// checks every frame).
