@@ -1025,6 +1025,90 @@ mod tests {
         }
     }
 
+    /// A block's footprint (heights −400 to 2000 m) and an eye above it,
+    /// with the screen-space policy's refiner at any eye (looking at the
+    /// planet's centre): the cases of the keeping tests.
+    #[derive(Debug, Clone)]
+    struct KeepCase {
+        fp: Footprint,
+        eye: DVec3,
+        fov_deg: f64,
+        tol: f64,
+    }
+
+    impl KeepCase {
+        /// The block at `(fx, fy)` of a face at `level`; the eye in
+        /// direction `dir`, `10^alt_log` m above the equatorial radius; the
+        /// tolerance `10^tol_log` px.
+        fn new(
+            face: u8,
+            level: u8,
+            (fx, fy): (f64, f64),
+            dir: (f64, f64, f64),
+            alt_log: f64,
+            fov_deg: f64,
+            tol_log: f64,
+        ) -> KeepCase {
+            use planet_core::{BlockId, Datum, Face};
+            let datum = Datum::WGS84;
+            let n = 1u32 << level;
+            let (x, y) = (
+                ((fx * n as f64) as u32).min(n - 1),
+                ((fy * n as f64) as u32).min(n - 1),
+            );
+            let id = BlockId::new(Face::new(face).expect("face"), level, x, y).expect("id");
+            let d = DVec3::new(dir.0, dir.1, dir.2);
+            let d = if d.length() < 1e-6 {
+                DVec3::X
+            } else {
+                d.normalize()
+            };
+            KeepCase {
+                fp: Footprint::of(&BlockBounds::new(&datum, id, -400.0, 2000.0)),
+                eye: d * (datum.equatorial_radius() + 10f64.powf(alt_log)),
+                fov_deg,
+                tol: 10f64.powf(tol_log),
+            }
+        }
+
+        fn refiner(&self, eye: DVec3) -> Refiner {
+            let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
+            c.fov_y = self.fov_deg.to_radians();
+            Refiner::new(Policy::Ours, &View::new(&c, 6.35e6, 6.38e6), 1e4, self.tol)
+        }
+
+        /// The eye moved along `(x, y, z)` by the fraction `f` of `slack`
+        /// (less 10⁻⁶ of it).
+        fn moved(&self, (x, y, z, f): (f64, f64, f64, f64), slack: f64) -> DVec3 {
+            let s = DVec3::new(x, y, z);
+            let s = if s.length() < 1e-6 {
+                DVec3::X
+            } else {
+                s.normalize()
+            };
+            self.eye + s * (slack * f * (1.0 - 1e-6))
+        }
+    }
+
+    prop_compose! {
+        /// A [`KeepCase`]: blocks at every level, on cube edges and corners
+        /// and at the poles; eyes from 1 m to 1000 Earth radii from the
+        /// surface; tolerances from 0.01 to 100 px; fields of view from 1°
+        /// to 170°.
+        fn keep_case()(
+            face in 0u8..6, level in 0u8..16, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
+            dir in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+            alt_log in 0.0f64..10.0, tol_log in -2.0f64..2.0, fov in 1.0f64..170.0,
+        ) -> KeepCase {
+            KeepCase::new(face, level, (fx, fy), dir, alt_log, fov, tol_log)
+        }
+    }
+
+    /// A direction and a fraction for [`KeepCase::moved`].
+    fn eye_step() -> impl Strategy<Value = (f64, f64, f64, f64)> {
+        (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0, 0.0f64..1.0)
+    }
+
     proptest! {
         /// A split block that [`Refiner::keep_slack`] keeps is not
         /// merged by its measure, at the eye it was asked at and at any eye
@@ -1034,43 +1118,23 @@ mod tests {
         /// and eyes from 1 m to 1000 Earth radii from the surface.
         #[test]
         fn surely_kept_splits_do_not_merge(
-            face in 0u8..6, level in 0u8..16, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
-            dir in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
-            step in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0, 0.0f64..1.0),
-            alt_log in 0.0f64..10.0, tol_log in -2.0f64..2.0, fov in 1.0f64..170.0,
+            k in keep_case(), step in eye_step(),
             err_log in -3.0f64..4.0, colour in proptest::bool::ANY,
         ) {
-            use planet_core::{BlockId, Datum, Face};
-            let datum = Datum::WGS84;
-            let n = 1u32 << level;
-            let (x, y) = (((fx * n as f64) as u32).min(n - 1), ((fy * n as f64) as u32).min(n - 1));
-            let id = BlockId::new(Face::new(face).expect("face"), level, x, y).expect("id");
-            let fp = Footprint::of(&BlockBounds::new(&datum, id, -400.0, 2000.0));
-            let d = DVec3::new(dir.0, dir.1, dir.2);
-            let d = if d.length() < 1e-6 { DVec3::X } else { d.normalize() };
-            let eye = d * (datum.equatorial_radius() + 10f64.powf(alt_log));
-            let at = |eye: DVec3| {
-                let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
-                c.fov_y = fov.to_radians();
-                Refiner::new(Policy::Ours, &View::new(&c, 6.35e6, 6.38e6), 1e4, 10f64.powf(tol_log))
-            };
+            let fp = &k.fp;
             let (kind, width) = if colour { (Kind::Colour, 256.0) } else { (Kind::Elevation, 64.0) };
             let err1 = 10f64.powf(err_log);
-            let r = at(eye);
-            if let Some((within, slack)) = r.keep_slack(kind, &fp, width, err1) {
-                prop_assert_eq!(r.merge(&r.measure(kind, &fp, width, err1, 0.0)), None);
+            let r = k.refiner(k.eye);
+            if let Some((within, slack)) = r.keep_slack(kind, fp, width, err1) {
+                prop_assert_eq!(r.merge(&r.measure(kind, fp, width, err1, 0.0)), None);
                 // An eye moved by less than the slack.
-                let s = DVec3::new(step.0, step.1, step.2);
-                let s = if s.length() < 1e-6 { DVec3::X } else { s.normalize() };
-                let moved = at(eye + s * (slack * step.3 * (1.0 - 1e-6)));
+                let moved = k.refiner(k.moved(step, slack));
                 if moved.near() < within {
-                    prop_assert_eq!(moved.merge(&moved.measure(kind, &fp, width, err1, 0.0)), None);
+                    prop_assert_eq!(moved.merge(&moved.measure(kind, fp, width, err1, 0.0)), None);
                 }
             }
         }
-    }
 
-    proptest! {
         /// A colour leaf at its finest keeps the LOD it is drawn at now
         /// ([`Refiner::leaf`]) at any eye within the slack of
         /// [`Refiner::finest_colour_slack`] (with the near distance below
@@ -1079,35 +1143,16 @@ mod tests {
         /// and eyes from 1 m to 1000 Earth radii from the surface.
         #[test]
         fn finest_colour_leaves_keep_their_lod_within_the_slack(
-            face in 0u8..6, level in 0u8..16, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
-            dir in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
-            step in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0, 0.0f64..1.0),
-            alt_log in 0.0f64..10.0, tol_log in -2.0f64..2.0, fov in 1.0f64..170.0,
+            k in keep_case(), step in eye_step(),
             width_log in 2u32..9, no_finer in proptest::bool::weighted(0.1),
         ) {
-            use planet_core::{BlockId, Datum, Face};
-            let datum = Datum::WGS84;
-            let n = 1u32 << level;
-            let (x, y) = (((fx * n as f64) as u32).min(n - 1), ((fy * n as f64) as u32).min(n - 1));
-            let id = BlockId::new(Face::new(face).expect("face"), level, x, y).expect("id");
-            let fp = Footprint::of(&BlockBounds::new(&datum, id, -400.0, 2000.0));
-            let d = DVec3::new(dir.0, dir.1, dir.2);
-            let d = if d.length() < 1e-6 { DVec3::X } else { d.normalize() };
-            let eye = d * (datum.equatorial_radius() + 10f64.powf(alt_log));
-            let at = |eye: DVec3| {
-                let mut c = Camera::look_at(eye, DVec3::ZERO, DVec3::Z);
-                c.fov_y = fov.to_radians();
-                Refiner::new(Policy::Ours, &View::new(&c, 6.35e6, 6.38e6), 1e4, 10f64.powf(tol_log))
-            };
             let width = f64::from(1u32 << width_log);
             let err1 = if no_finer { 0.0 } else { 1.0 };
-            let lod_at = |r: &Refiner| r.leaf(&r.measure(Kind::Colour, &fp, width, err1, 0.0), 0).lod;
-            let r = at(eye);
+            let lod_at = |r: &Refiner| r.leaf(&r.measure(Kind::Colour, &k.fp, width, err1, 0.0), 0).lod;
+            let r = k.refiner(k.eye);
             let lod = lod_at(&r);
-            if let Some((within, slack)) = r.finest_colour_slack(&fp, width, err1, lod) {
-                let s = DVec3::new(step.0, step.1, step.2);
-                let s = if s.length() < 1e-6 { DVec3::X } else { s.normalize() };
-                let moved = at(eye + s * (slack.min(1e12) * step.3 * (1.0 - 1e-6)));
+            if let Some((within, slack)) = r.finest_colour_slack(&k.fp, width, err1, lod) {
+                let moved = k.refiner(k.moved(step, slack.min(1e12)));
                 if moved.near() < within {
                     prop_assert_eq!(lod_at(&moved), lod, "slack {}", slack);
                 }
