@@ -281,13 +281,30 @@ impl Footprint {
         self.distance_from(eye, eye.length())
     }
 
+    /// `|eye − centre| − sphere_radius`: the distance to the ball holding
+    /// every bounding point, a lower bound of [`Footprint::distance`] (its
+    /// first term) that moves by at most as much as the eye.
+    #[inline]
+    pub fn ball_distance(&self, eye: DVec3) -> f64 {
+        (eye - self.centre).length() - self.sphere_radius
+    }
+
+    /// `|eye − centre| + sphere_radius`: an upper bound of
+    /// [`Footprint::distance`] (each of its terms is at most the distance
+    /// to a bounding point, and those lie in the ball), which moves by at
+    /// most as much as the eye.
+    #[inline]
+    pub fn upper_distance(&self, eye: DVec3) -> f64 {
+        (eye - self.centre).length() + self.sphere_radius
+    }
+
     /// [`Footprint::distance`] with `|eye|` given (the same for every
     /// block of a frame). The angle between the eye and the nearest
     /// direction of the cone, `φ = θ − half_angle`, is handled through its
     /// sine and cosine (no inverse trigonometry), and the distance in forms
     /// without cancellation.
     pub fn distance_from(&self, eye: DVec3, e: f64) -> f64 {
-        let ball = (eye - self.centre).length() - self.sphere_radius;
+        let ball = self.ball_distance(eye);
         let above = e - self.r_top;
         let mut side = f64::NEG_INFINITY;
         if self.half_angle < std::f64::consts::FRAC_PI_2 && e > 0.0 {
@@ -501,59 +518,58 @@ impl Refiner {
         }
     }
 
-    /// A distance within which a split block surely keeps its children,
-    /// whatever its exact measure: closer than it (and with the near
-    /// distance below it), its first LOD's screen-space error is above
-    /// [`MERGE_AT`] of the tolerance, so [`Refiner::merge`] declines. Its
-    /// first LOD's error is `err1` metres (elevation) or, for colour
-    /// (`err1 > 0`: finer colour exists), its texels at its first LOD
-    /// (the footprint's side `radius·√2` over `width / 2`). 0 when there is none (the thesis's
-    /// importance, no error, or no finite distance), so that every block
-    /// is measured.
-    ///
-    /// [`ScreenError::distance_for`] inverts the error's formula in real
-    /// arithmetic; the distance is shrunk by 10⁻⁹ of itself, far more than
-    /// the rounding of the forward formula, so that a block closer than it
-    /// is kept by the measured error too.
-    pub fn keeps_split_within(&self, kind: Kind, radius: f64, width: f64, err1: f64) -> f64 {
-        if self.policy == Policy::Thesis {
-            return 0.0;
-        }
-        let error = match kind {
-            Kind::Elevation => err1,
-            Kind::Colour if err1 > 0.0 => texel_sizes(radius, width).0,
-            Kind::Colour => return 0.0,
-        };
-        let d = self.sse.distance_for(error, self.tol * MERGE_AT) * (1.0 - 1e-9);
-        // `scale` clamps distances below 1 mm.
-        if d.is_finite() && d > 1e-3 {
-            d
-        } else {
-            0.0
-        }
-    }
-
-    /// An upper bound of the distance from the eye to a block's footprint
-    /// `fp` (every term of [`Footprint::distance_from`] is at most the
-    /// distance to a bounding point, and the bounding points lie in the
-    /// ball `|x − centre| ≤ sphere_radius`): `|eye − centre| +
-    /// sphere_radius`.
-    pub fn upper_distance(&self, fp: &Footprint) -> f64 {
-        (self.eye - fp.centre).length() + fp.sphere_radius
-    }
-
     /// The near distance, below which distances count as it
     /// ([`ScreenError::scale`] of `max(d, near)`).
     pub fn near(&self) -> f64 {
         self.near
     }
 
-    /// Whether a split block of footprint `fp` surely keeps its children
-    /// ([`Refiner::keeps_split_within`] at [`Refiner::upper_distance`]),
-    /// decided without its full measure: `Some((within, slack))` if so,
-    /// where `slack = within − upper` is how far the eye may move before
-    /// that can change (`upper` moves by at most as much as the eye).
-    /// `None` means "measure it".
+    /// The distance at which `error` metres project to `px` pixels
+    /// ([`ScreenError::distance_for`], the error's formula solved for the
+    /// distance), where it is finite and above the millimetre below which
+    /// [`ScreenError::scale`] clamps. `None` for the thesis's importance,
+    /// which is no error.
+    fn threshold_distance(&self, error: f64, px: f64) -> Option<f64> {
+        if self.policy == Policy::Thesis {
+            return None;
+        }
+        let d = self.sse.distance_for(error, px);
+        (d.is_finite() && d > 1e-3).then_some(d)
+    }
+
+    /// Whether the block of footprint `fp` is surely closer than the
+    /// threshold distance `d` ([`Footprint::upper_distance`] below it, and
+    /// the near distance too): `Some((within, slack))`, where `within` is
+    /// `d` shrunk by 10⁻⁹ of itself (far more than the rounding of the
+    /// error's forward formula) and `slack = within − upper` is how far
+    /// the eye may move before that can change, while the near distance
+    /// stays below `within`.
+    fn stays_closer(&self, fp: &Footprint, d: f64) -> Option<(f64, f64)> {
+        let within = d * (1.0 - 1e-9);
+        let upper = fp.upper_distance(self.eye);
+        // NaN compares false: measured.
+        (upper < within && self.near < within).then_some((within, within - upper))
+    }
+
+    /// Whether the block of footprint `fp` is surely farther than the
+    /// threshold distance `d` ([`Footprint::ball_distance`] above it, grown
+    /// by 10⁻⁹; the near distance only raises the distance that counts):
+    /// `Some((∞, slack))` as for [`Refiner::stays_closer`].
+    fn stays_farther(&self, fp: &Footprint, d: f64) -> Option<(f64, f64)> {
+        let beyond = d * (1.0 + 1e-9);
+        let ball = fp.ball_distance(self.eye);
+        // NaN compares false: measured.
+        (ball > beyond).then_some((f64::INFINITY, ball - beyond))
+    }
+
+    /// Whether a split block of footprint `fp` surely keeps its children,
+    /// decided without its full measure: `Some((within, slack))` while it
+    /// is closer than the distance at which its first LOD's error falls to
+    /// [`MERGE_AT`] of the tolerance, so that [`Refiner::merge`] declines
+    /// (`stays_closer`). Its first LOD's error is `err1` metres
+    /// (elevation) or, for colour (`err1 > 0`: finer colour exists), its
+    /// texels at its first LOD (`texel_sizes`). `None` means "measure it"
+    /// (no error, the thesis's importance, or no finite distance).
     pub fn keep_slack(
         &self,
         kind: Kind,
@@ -561,10 +577,12 @@ impl Refiner {
         width: f64,
         err1: f64,
     ) -> Option<(f64, f64)> {
-        let within = self.keeps_split_within(kind, fp.radius, width, err1);
-        let upper = self.upper_distance(fp);
-        // NaN compares false: measured.
-        (upper < within && self.near < within).then_some((within, within - upper))
+        let error = match kind {
+            Kind::Elevation => err1,
+            Kind::Colour if err1 > 0.0 => texel_sizes(fp.radius, width).0,
+            Kind::Colour => return None,
+        };
+        self.stays_closer(fp, self.threshold_distance(error, self.tol * MERGE_AT)?)
     }
 
     /// For a colour leaf at its finest (LOD 0 loaded, no children to split
@@ -573,17 +591,8 @@ impl Refiner {
     /// its first LOD's texels project above [`KEEP_LOD0`] of the
     /// tolerance). `Some((within, slack))` when that LOD surely stays
     /// while the eye moves less than `slack` and the near distance stays
-    /// below `within`:
-    ///
-    /// - drawn at LOD 1: the footprint's distance is at least the ball's,
-    ///   `|eye − centre| − sphere_radius`, which moves by at most as much
-    ///   as the eye, and the near distance only raises it;
-    /// - drawn at LOD 0: the distance is at most
-    ///   [`Refiner::upper_distance`], likewise.
-    ///
-    /// The threshold distance is shrunk or grown by 10⁻⁹ of itself, far
-    /// more than the rounding of the forward formula. `None`: measure it
-    /// (the thesis's importance, or no margin).
+    /// below `within`: drawn at LOD 1, `stays_farther`; at LOD
+    /// 0, `stays_closer`. `None`: measure it.
     pub fn finest_colour_slack(
         &self,
         fp: &Footprint,
@@ -598,23 +607,12 @@ impl Refiner {
             // No finer colour: no error at its first LOD, drawn there.
             return (lod == 1).then_some((f64::INFINITY, f64::INFINITY));
         }
-        let threshold = self.tol * KEEP_LOD0.min(1.0);
-        let d = self
-            .sse
-            .distance_for(texel_sizes(fp.radius, width).0, threshold);
-        // `scale` clamps distances below 1 mm.
-        if !(d.is_finite() && d > 1e-3) {
-            return None;
-        }
-        // NaN compares false: measured.
+        let texel1 = texel_sizes(fp.radius, width).0;
+        let d = self.threshold_distance(texel1, self.tol * KEEP_LOD0.min(1.0))?;
         if lod == 1 {
-            let lo = d * (1.0 + 1e-9);
-            let ball = (self.eye - fp.centre).length() - fp.sphere_radius;
-            (ball > lo).then_some((f64::INFINITY, ball - lo))
+            self.stays_farther(fp, d)
         } else {
-            let hi = d * (1.0 - 1e-9);
-            let upper = self.upper_distance(fp);
-            (upper < hi && self.near < hi).then_some((hi, hi - upper))
+            self.stays_closer(fp, d)
         }
     }
 
@@ -1017,7 +1015,7 @@ mod tests {
             prop_assert!(!dist.is_nan());
             prop_assert!(dist >= (eye - b.centre).length() - b.sphere_radius - 1e-6);
             // The upper bound Refiner::keep_slack relies on.
-            let upper = (eye - b.centre).length() + b.sphere_radius;
+            let upper = fp.upper_distance(eye);
             prop_assert!(dist <= upper * (1.0 + 1e-12), "{dist} > {upper}");
             let min = surface_distance(&datum, id, &[h0, h0 + dh * 0.5, h0 + dh], 24, eye);
             // A millimetre of slack per 10 000 km for rounding.

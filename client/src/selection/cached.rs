@@ -1245,12 +1245,6 @@ impl Selector {
                     m.m = refiner.measure(Kind::Colour, fp, cw, err1, c.err0);
                 }
                 let mm = m.m;
-                if finest && measured {
-                    let lod = refiner.leaf(&mm, c.lod).lod;
-                    m.keep
-                        .refresh(odo, refiner.finest_colour_slack(fp, cw, err1, lod));
-                    m.lod = lod;
-                }
                 if c.split {
                     if let Some(p) = refiner.merge(&mm) {
                         let err = (c.record.error as f64, c.err0);
@@ -1271,6 +1265,11 @@ impl Selector {
                 }
                 let d = refiner.leaf(&mm, c.lod);
                 self.cdrawn[j] = d.lod.max(c.lod);
+                if finest && measured {
+                    m.keep
+                        .refresh(odo, refiner.finest_colour_slack(fp, cw, err1, d.lod));
+                    m.lod = d.lod;
+                }
                 if d.load {
                     cx.out.loads.push(LoadRequest {
                         tree: Tree::Colour,
