@@ -118,6 +118,12 @@ pub struct ClientConfig {
     /// most half full, as [`ClientConfig::lookahead`]: a prefetch in flight
     /// would otherwise hold back a request the present view needs.
     pub prefetch: bool,
+    /// Give each request its importance as the priority of its response at
+    /// the server ([`Outgoing::priority`], docs/PROTOCOL.md §4.10): a
+    /// request made after others, when the view has changed, is answered
+    /// before those less important still waiting in the server's send
+    /// buffer, instead of after all of them.
+    pub stream_priority: bool,
 }
 
 impl Default for ClientConfig {
@@ -131,14 +137,18 @@ impl ClientConfig {
     /// The configuration of `policy` at pixel tolerance `max_sse_px`, with
     /// the policy's own queue (see [`crate::refinement`] for the sources):
     ///
-    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests | levels per round trip | prefetch for the view ahead |
-    /// |---|---|---|---|---|---|---|---|---|---|
-    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 | 2 | yes |
-    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 | 1 | no |
-    /// | cesium | 18 | 20 | never | no | no | count | 3 | 1 | no |
-    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 | 1 | no |
+    /// | policy | in flight | new per frame | cancel untriggered | pre-empt | view predicted | window | frames from arrival to the children's requests | levels per round trip | prefetch for the view ahead | answers by priority |
+    /// |---|---|---|---|---|---|---|---|---|---|---|
+    /// | ours | 64 | any | after 10 frames | no | yes | 2 × BDP | 1 | 2 | yes | yes |
+    /// | thesis | 16 | any | after 2 frames | by 2 | no | count | 3 | 1 | no | no |
+    /// | cesium | 18 | 20 | never | no | no | count | 3 | 1 | no | no |
+    /// | breadth | 16 | any | after 2 frames | no | no | count | 3 | 1 | no | no |
     ///
     /// Prefetch: [`ClientConfig::prefetch`] (it needs the view predicted).
+    /// Answers by priority: [`ClientConfig::stream_priority`]; without it
+    /// the server answers in the order of the requests, and CesiumJS's
+    /// requests carry no priority that a server sees (its priority orders
+    /// its own heap, `RequestScheduler`).
     /// Levels per round trip: [`ClientConfig::lookahead`]; CesiumJS
     /// requests a tile's children only once the tile is rendered
     /// (`QuadtreePrimitive`'s traversal refines loaded tiles only). The
@@ -199,6 +209,7 @@ impl ClientConfig {
             eager_children: policy == Policy::Ours,
             lookahead: policy == Policy::Ours,
             prefetch: policy == Policy::Ours,
+            stream_priority: policy == Policy::Ours,
             decode_wait_s: if policy == Policy::Ours {
                 DECODE_WAIT_S
             } else {
@@ -284,8 +295,13 @@ pub struct Outgoing {
     pub tree: Tree,
     /// Its block.
     pub block: BlockId,
-    /// Request importance (a transport may use it as stream priority).
+    /// Request importance.
     pub importance: f64,
+    /// The priority of the response at the server
+    /// ([`crate::request_queue::stream_priority`] of the importance), when
+    /// [`ClientConfig::stream_priority`] is on: a transport that can sends
+    /// it with the request (a QUIC session's `Priority` frame).
+    pub priority: Option<i32>,
     /// Forced by a neighbour's split (visibility ignored, §4.3.3).
     pub forced: bool,
     /// Ask for the child tables of the record's children too, each only
@@ -1123,6 +1139,7 @@ impl Client {
         let chosen = self.queue.select(loads);
         cancel.extend(chosen.cancel);
         let known = &self.lookahead;
+        let stream_priority = self.config.stream_priority;
         // How far the camera can come while a table asked now is kept.
         let approach = self.predictor.step() * crate::lookahead::KEEP_FRAMES as f64;
         let send: Vec<Outgoing> = chosen
@@ -1134,6 +1151,8 @@ impl Client {
                 tree: r.tree,
                 block: r.block,
                 importance: r.importance,
+                priority: stream_priority
+                    .then(|| crate::request_queue::stream_priority(r.importance)),
                 forced: r.forced,
                 refs: if lookahead && r.tree == Tree::Elevation {
                     wants_tables(tree, known, arrival, approach, r.block, &r.record)

@@ -33,6 +33,32 @@ use crate::tree::FastMap;
 use planet_core::format::{ChildRef, Tree};
 use planet_core::BlockId;
 
+/// A request's importance as the priority of its response on the wire
+/// (`Priority`, docs/PROTOCOL.md §4.10): an `i32` in the importance's
+/// order, so the server sends answers in the order the client would ask
+/// for them now (non-strictly: importances within a relative 2⁻²⁰ of each
+/// other may share a priority, and are then answered in request order).
+/// These are the high 32 bits of the `f64` in its total order (sign,
+/// exponent and 20 bits of mantissa), so any importance keeps its order:
+/// the positive ones of the screen-space policies, the negative ones of
+/// their prefetch ([`crate::refinement::ahead_priority`]), zero and the
+/// infinities. NaN, which ranks nothing, gets the lowest.
+pub fn stream_priority(importance: f64) -> i32 {
+    if importance.is_nan() {
+        return i32::MIN;
+    }
+    let bits = importance.to_bits();
+    // Sign-magnitude to an unsigned order: negatives reversed below the
+    // positives (as `f64::total_cmp`).
+    let ordered = if bits >> 63 == 1 {
+        !bits
+    } else {
+        bits | 1 << 63
+    };
+    // The high half, from unsigned to signed order.
+    ((ordered >> 32) as u32 ^ 0x8000_0000) as i32
+}
+
 /// Exponential backoff per block after a failed or rejected load: the
 /// first retry waits [`RetryBackoff::INITIAL`] seconds, each further failure
 /// doubles the wait up to [`RetryBackoff::MAX`]; a success forgets it.
@@ -404,6 +430,49 @@ pub fn select_tree_ops(triggered: Vec<TreeOp>, capacity: usize) -> Vec<TreeOp> {
 mod tests {
     use super::*;
     use planet_core::Face;
+    use proptest::prelude::*;
+
+    /// Any f64 other than NaN, sign, exponent and mantissa at random.
+    fn any_number() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            any::<f64>().prop_filter("not NaN", |x| !x.is_nan()),
+            Just(0.0),
+            Just(-0.0),
+            Just(f64::INFINITY),
+            Just(f64::NEG_INFINITY),
+            Just(f64::MIN_POSITIVE),
+            -1.0f64..1.0,
+        ]
+    }
+
+    proptest! {
+        /// The wire priority keeps the importance's order: never reversed,
+        /// and strict beyond a relative 2⁻²⁰ (the mantissa bits kept).
+        #[test]
+        fn stream_priority_keeps_the_order(a in any_number(), b in any_number()) {
+            // In the total order: −0 below +0, as the map has them.
+            let (lo, hi) = if a.total_cmp(&b).is_le() { (a, b) } else { (b, a) };
+            let (p, q) = (stream_priority(lo), stream_priority(hi));
+            prop_assert!(p <= q, "{lo} -> {p}, {hi} -> {q}");
+            let apart = |x: f64, y: f64| x.abs() > y.abs() * (1.0 + 2f64.powi(-19));
+            let same_sign = lo.signum() == hi.signum() && lo != 0.0;
+            if lo.is_normal() && hi.is_normal() && same_sign && (apart(hi, lo) || apart(lo, hi)) {
+                prop_assert!(p < q, "{lo} and {hi} share {p}");
+            }
+            prop_assert!(stream_priority(f64::NAN) <= p);
+        }
+    }
+
+    #[test]
+    fn stream_priorities_of_prefetch_zero_and_loads() {
+        // A prefetch (negative) below a present load, zero between them.
+        let prefetch = stream_priority(crate::refinement::ahead_priority(1e-3));
+        assert!(prefetch < stream_priority(0.0) && stream_priority(0.0) < stream_priority(1e-9));
+        assert!(stream_priority(1e-9) < stream_priority(1e-4));
+        assert_eq!(stream_priority(f64::NAN), i32::MIN);
+        assert!(stream_priority(f64::NEG_INFINITY) > i32::MIN);
+        assert_eq!(stream_priority(f64::INFINITY), 0x7ff0_0000);
+    }
 
     fn req(x: u32, imp: f64) -> LoadRequest {
         LoadRequest {

@@ -20,7 +20,7 @@ use crate::codec;
 use crate::error::ProtocolError;
 use crate::message::{
     Cancel, ErrorMsg, Goodbye, Hello, LodRefsAboveRequest, LodRequest, Message, ResponseHead,
-    Welcome, WireBody, MAX_HEADER_LEN,
+    StreamPriority, Welcome, WireBody, MAX_HEADER_LEN,
 };
 
 /// Size of the length prefix.
@@ -47,9 +47,17 @@ pub const LOD_REQUEST_FRAME_LEN: usize = FRAME_HEADER_LEN + 8 + 8 + 4;
 /// `f32` floors.
 pub const LOD_REFS_ABOVE_REQUEST_FRAME_LEN: usize = LOD_REQUEST_FRAME_LEN + 4 * 4;
 
-/// The longest request frame: a server reads a request stream to its end
-/// with this limit.
+/// The longest request frame.
 pub const MAX_REQUEST_FRAME_LEN: usize = LOD_REFS_ABOVE_REQUEST_FRAME_LEN;
+
+/// Exact size on the wire of a `Priority` frame ([`StreamPriority`]),
+/// prefix included: one `i32`.
+pub const PRIORITY_FRAME_LEN: usize = FRAME_HEADER_LEN + 4;
+
+/// The longest client side of a request stream, a `Priority` frame and the
+/// longest request frame: a server reads a request stream to its end with
+/// this limit.
+pub const MAX_REQUEST_STREAM_LEN: usize = PRIORITY_FRAME_LEN + MAX_REQUEST_FRAME_LEN;
 
 /// Exact size on the wire of a successful [`ResponseHead`] frame, prefix included.
 pub const RESPONSE_HEAD_OK_FRAME_LEN: usize = FRAME_HEADER_LEN + 8 + 4 + 4;
@@ -78,11 +86,14 @@ pub enum MessageType {
     /// [`LodRefsAboveRequest`], client -> server, request stream: the
     /// record, then the child tables that reach their floors.
     LodRefsAboveRequest = 0x13,
+    /// [`StreamPriority`], client -> server, request stream, before the
+    /// request frame: the order in which the server sends its response.
+    Priority = 0x14,
 }
 
 impl MessageType {
     /// Every message type.
-    pub const ALL: [MessageType; 9] = [
+    pub const ALL: [MessageType; 10] = [
         MessageType::Hello,
         MessageType::Welcome,
         MessageType::Error,
@@ -92,6 +103,7 @@ impl MessageType {
         MessageType::ResponseHead,
         MessageType::LodRefsRequest,
         MessageType::LodRefsAboveRequest,
+        MessageType::Priority,
     ];
 
     /// Parses a type byte.
@@ -106,6 +118,7 @@ impl MessageType {
             0x11 => MessageType::ResponseHead,
             0x12 => MessageType::LodRefsRequest,
             0x13 => MessageType::LodRefsAboveRequest,
+            0x14 => MessageType::Priority,
             _ => return None,
         })
     }
@@ -135,6 +148,7 @@ impl MessageType {
             MessageType::ResponseHead => "response_head",
             MessageType::LodRefsRequest => "lod_refs_request",
             MessageType::LodRefsAboveRequest => "lod_refs_above_request",
+            MessageType::Priority => "priority",
         }
     }
 }
@@ -157,6 +171,7 @@ pub fn encode_frame_into(msg: &Message, out: &mut Vec<u8>) -> Result<(), Protoco
         Message::ResponseHead(m) => encode_body_frame(m, out),
         Message::LodRefsRequest(m) => encode_body_frame_as(m, MessageType::LodRefsRequest, out),
         Message::LodRefsAboveRequest(m) => encode_body_frame(m, out),
+        Message::Priority(m) => encode_body_frame(m, out),
     }
 }
 
@@ -267,6 +282,9 @@ fn decode_body(msg_type: MessageType, body: &[u8]) -> Result<Message, ProtocolEr
         }
         MessageType::LodRefsAboveRequest => {
             codec::decode_exact::<LodRefsAboveRequest, CONTROL>(body, msg_type)?.into()
+        }
+        MessageType::Priority => {
+            codec::decode_exact::<StreamPriority, CONTROL>(body, msg_type)?.into()
         }
     };
     msg.validate()?;

@@ -8,10 +8,11 @@
 //! - [`frame`]: `u32 LE length | u8 type | body` framing, [`FrameDecoder`].
 //! - [`message`]: [`Hello`], [`Welcome`], [`LodRequest`] (sent as a
 //!   `LodRequest` or a `LodRefsRequest`, [`RequestKind`]),
-//!   [`LodRefsAboveRequest`], [`ResponseHead`],
+//!   [`LodRefsAboveRequest`], [`StreamPriority`], [`ResponseHead`],
 //!   [`Cancel`], [`ErrorMsg`], [`Goodbye`] and the [`Message`] sum type.
-//! - [`response`]: request streams (request frame; head + raw record body,
-//!   plus the child tables for a `LodRefsRequest`).
+//! - [`response`]: request streams (an optional priority frame and the
+//!   request frame; head + raw record body, plus the child tables for a
+//!   `LodRefsRequest`).
 //! - [`state`]: [`ClientHandshake`], [`ServerSession`], [`InFlight`].
 //! - [`error_code`]: stable [`ErrorCode`]s and QUIC application codes.
 //! - `codec` (private): the only user of bincode 2.0.1.
@@ -29,16 +30,18 @@ pub use error_code::{quic, ErrorCode};
 pub use frame::{
     decode_frame, encode_frame, encode_frame_into, FrameDecoder, MessageType, FRAME_HEADER_LEN,
     LEN_PREFIX_LEN, LOD_REFS_ABOVE_REQUEST_FRAME_LEN, LOD_REQUEST_FRAME_LEN, MAX_FRAME_LEN,
-    MAX_REQUEST_FRAME_LEN, MAX_WELCOME_FRAME_LEN, RESPONSE_HEAD_OK_FRAME_LEN,
+    MAX_REQUEST_FRAME_LEN, MAX_REQUEST_STREAM_LEN, MAX_WELCOME_FRAME_LEN, PRIORITY_FRAME_LEN,
+    RESPONSE_HEAD_OK_FRAME_LEN,
 };
 pub use message::{
     Cancel, ErrorFloors, ErrorMsg, Goodbye, Hello, Limits, LodRefsAboveRequest, LodRequest,
-    Message, RequestKind, ResponseHead, Status, Welcome, MAX_ERROR_MESSAGE_LEN, MAX_HEADER_LEN,
-    MAX_NAME_LEN, MAX_REFS_TRAILER_LEN,
+    Message, RequestKind, ResponseHead, Status, StreamPriority, Welcome, MAX_ERROR_MESSAGE_LEN,
+    MAX_HEADER_LEN, MAX_NAME_LEN, MAX_REFS_TRAILER_LEN,
 };
 pub use response::{
-    check_head, check_head_kind, decode_any_request_stream, decode_request_stream, decode_response,
-    decode_response_with_refs, Response, ResponseDecoder,
+    check_head, check_head_kind, decode_any_request_stream, decode_prioritized_request_stream,
+    decode_request_stream, decode_response, decode_response_with_refs, RequestStream, Response,
+    ResponseDecoder,
 };
 pub use state::{
     Authorizer, ClientHandshake, HandshakeOutcome, InFlight, InFlightError, ServerEvent,

@@ -206,6 +206,17 @@ impl LodRefsAboveRequest {
     }
 }
 
+/// Client -> server, the first frame of a request stream when present
+/// (type 0x14), before the request frame: the response goes out before
+/// those of the connection's lower `priority` (docs/PROTOCOL.md §4.10).
+/// Responses of equal priority go in the order their requests arrived, and
+/// a request stream without this frame has priority 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Encode, Decode)]
+pub struct StreamPriority {
+    /// Higher is sent first.
+    pub priority: i32,
+}
+
 /// What a request stream asks for: the frame type that carries its
 /// [`LodRequest`] body.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -281,6 +292,23 @@ impl LodRequest {
     /// ([`crate::LOD_REFS_ABOVE_REQUEST_FRAME_LEN`] bytes).
     pub fn encode_frame_as(&self, kind: RequestKind) -> Result<Vec<u8>, ProtocolError> {
         kind.message(*self).encode_frame()
+    }
+
+    /// The whole client side of a request stream for this request of
+    /// `kind`: a `Priority` frame when `priority` is given
+    /// ([`crate::PRIORITY_FRAME_LEN`] bytes), then the request frame
+    /// ([`LodRequest::encode_frame_as`]).
+    pub fn encode_stream(
+        &self,
+        kind: RequestKind,
+        priority: Option<StreamPriority>,
+    ) -> Result<Vec<u8>, ProtocolError> {
+        let mut out = match priority {
+            Some(p) => p.encode_frame()?,
+            None => Vec::new(),
+        };
+        crate::frame::encode_frame_into(&kind.message(*self), &mut out)?;
+        Ok(out)
     }
 }
 
@@ -438,6 +466,8 @@ pub enum Message {
     LodRefsRequest(LodRequest),
     /// See [`LodRefsAboveRequest`] ([`RequestKind::RecordAndRefsAbove`]).
     LodRefsAboveRequest(LodRefsAboveRequest),
+    /// See [`StreamPriority`].
+    Priority(StreamPriority),
 }
 
 impl Message {
@@ -453,6 +483,7 @@ impl Message {
             Message::ResponseHead(_) => MessageType::ResponseHead,
             Message::LodRefsRequest(_) => MessageType::LodRefsRequest,
             Message::LodRefsAboveRequest(_) => MessageType::LodRefsAboveRequest,
+            Message::Priority(_) => MessageType::Priority,
         }
     }
 
@@ -468,6 +499,7 @@ impl Message {
             Message::ResponseHead(m) => m.check(),
             Message::LodRefsRequest(m) => m.check(),
             Message::LodRefsAboveRequest(m) => m.check(),
+            Message::Priority(m) => m.check(),
         }
     }
 
@@ -525,6 +557,7 @@ impl_wire_body! {
     LodRequest => LodRequest, |_| Ok(());
     ResponseHead => ResponseHead, ResponseHead::validate;
     LodRefsAboveRequest => LodRefsAboveRequest, |m| m.floors.validate();
+    StreamPriority => Priority, |_| Ok(());
 }
 
 fn check_len(field: &'static str, len: usize, max: usize) -> Result<(), ProtocolError> {

@@ -13,7 +13,8 @@
 use crate::error::ProtocolError;
 use crate::frame::{FrameDecoder, MAX_FRAME_LEN};
 use crate::message::{
-    ErrorMsg, LodRequest, Message, RequestKind, ResponseHead, Status, MAX_REFS_TRAILER_LEN,
+    ErrorMsg, LodRequest, Message, RequestKind, ResponseHead, Status, StreamPriority,
+    MAX_REFS_TRAILER_LEN,
 };
 
 /// Decodes the whole client side of a request stream (read to its end, at
@@ -21,9 +22,13 @@ use crate::message::{
 /// frame. A `LodRefsRequest` is refused here as an unexpected message; a
 /// server that serves both uses [`decode_any_request_stream`].
 pub fn decode_request_stream(bytes: &[u8]) -> Result<LodRequest, ProtocolError> {
-    match decode_stream(bytes, "on a request stream (expected lod_request)")? {
-        (req, RequestKind::Record) => Ok(req),
-        (_, kind) => Err(ProtocolError::UnexpectedMessage {
+    match decode_stream(bytes, false, "on a request stream (expected lod_request)")? {
+        RequestStream {
+            request,
+            kind: RequestKind::Record,
+            ..
+        } => Ok(request),
+        RequestStream { kind, .. } => Err(ProtocolError::UnexpectedMessage {
             got: kind.msg_type(),
             context: "on a request stream (expected lod_request)",
         }),
@@ -34,36 +39,71 @@ pub fn decode_request_stream(bytes: &[u8]) -> Result<LodRequest, ProtocolError> 
 /// most [`crate::MAX_REQUEST_FRAME_LEN`] bytes): exactly one `LodRequest`,
 /// `LodRefsRequest` or `LodRefsAboveRequest` frame, with the kind of
 /// request it is.
+/// A `Priority` frame is refused here, as a server that predates it
+/// refuses it; a server that reads it uses
+/// [`decode_prioritized_request_stream`].
 pub fn decode_any_request_stream(bytes: &[u8]) -> Result<(LodRequest, RequestKind), ProtocolError> {
     decode_stream(
         bytes,
+        false,
         "on a request stream (expected lod_request, lod_refs_request or lod_refs_above_request)",
+    )
+    .map(|s| (s.request, s.kind))
+}
+
+/// The client side of a request stream as a server that knows the
+/// `Priority` frame reads it ([`decode_prioritized_request_stream`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct RequestStream {
+    /// The request.
+    pub request: LodRequest,
+    /// The frame type it came in.
+    pub kind: RequestKind,
+    /// The `Priority` frame before it, if any (docs/PROTOCOL.md §4.10).
+    pub priority: Option<StreamPriority>,
+}
+
+/// Decodes the whole client side of a request stream (read to its end, at
+/// most [`crate::MAX_REQUEST_STREAM_LEN`] bytes): an optional `Priority`
+/// frame, then exactly one `LodRequest`, `LodRefsRequest` or
+/// `LodRefsAboveRequest` frame.
+pub fn decode_prioritized_request_stream(bytes: &[u8]) -> Result<RequestStream, ProtocolError> {
+    decode_stream(
+        bytes,
+        true,
+        "on a request stream (expected priority, lod_request, lod_refs_request or lod_refs_above_request)",
     )
 }
 
 fn decode_stream(
     bytes: &[u8],
+    prioritized: bool,
     context: &'static str,
-) -> Result<(LodRequest, RequestKind), ProtocolError> {
+) -> Result<RequestStream, ProtocolError> {
     let mut dec = FrameDecoder::with_max_frame_len(MAX_FRAME_LEN);
     dec.push(bytes);
-    let found = match dec.next_frame()? {
-        Some(Message::LodRequest(req)) => (req, RequestKind::Record),
-        Some(Message::LodRefsRequest(req)) => (req, RequestKind::RecordAndRefs),
-        Some(Message::LodRefsAboveRequest(r)) => {
-            (r.request(), RequestKind::RecordAndRefsAbove(r.floors))
-        }
-        Some(other) => {
-            return Err(ProtocolError::UnexpectedMessage {
-                got: other.msg_type(),
-                context,
-            })
-        }
-        None => {
-            dec.finish()?;
-            return Err(ProtocolError::UnexpectedEnd {
-                during: "before the request frame",
-            });
+    let mut priority = None;
+    let (request, kind) = loop {
+        match dec.next_frame()? {
+            Some(Message::LodRequest(req)) => break (req, RequestKind::Record),
+            Some(Message::LodRefsRequest(req)) => break (req, RequestKind::RecordAndRefs),
+            Some(Message::LodRefsAboveRequest(r)) => {
+                break (r.request(), RequestKind::RecordAndRefsAbove(r.floors))
+            }
+            // At most one, first.
+            Some(Message::Priority(p)) if prioritized && priority.is_none() => priority = Some(p),
+            Some(other) => {
+                return Err(ProtocolError::UnexpectedMessage {
+                    got: other.msg_type(),
+                    context,
+                })
+            }
+            None => {
+                dec.finish()?;
+                return Err(ProtocolError::UnexpectedEnd {
+                    during: "before the request frame",
+                });
+            }
         }
     };
     if dec.buffered() != 0 {
@@ -72,7 +112,11 @@ fn decode_stream(
             after: "request frame",
         });
     }
-    Ok(found)
+    Ok(RequestStream {
+        request,
+        kind,
+        priority,
+    })
 }
 
 /// A fully received response.

@@ -260,7 +260,7 @@ fn raw_frame(type_byte: u8, body: &[u8]) -> Vec<u8> {
 
 #[test]
 fn unknown_types_are_rejected() {
-    for t in [0x00u8, 0x06, 0x0f, 0x14, 0x7f, 0xff] {
+    for t in [0x00u8, 0x06, 0x0f, 0x15, 0x7f, 0xff] {
         let mut dec = FrameDecoder::new();
         dec.push(&raw_frame(t, &[1, 2, 3]));
         let err = dec.next_frame().unwrap_err();

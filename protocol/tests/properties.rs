@@ -91,6 +91,7 @@ fn message() -> impl Strategy<Value = Message> {
             .prop_map(|(id, len)| Message::ResponseHead(ResponseHead::ok(id, len))),
         (any::<u64>(), error_msg())
             .prop_map(|(id, e)| Message::ResponseHead(ResponseHead::error(id, e))),
+        any::<i32>().prop_map(|priority| Message::Priority(StreamPriority { priority })),
     ]
 }
 
@@ -163,6 +164,7 @@ proptest! {
         let _ = decode_frame(&bytes);
         let _ = decode_request_stream(&bytes);
         let _ = decode_any_request_stream(&bytes);
+        let _ = decode_prioritized_request_stream(&bytes);
         let req = LodRequest { id: 0, offset: 0, size: 16 };
         let _ = decode_response(&req, &bytes);
         let _ = decode_response_with_refs(&req, &bytes);

@@ -353,3 +353,109 @@ fn the_error_code_table_of_the_document_is_the_code() {
         .collect();
     assert_eq!(rows, code);
 }
+
+/// A `Priority` frame of priority −2 then the 0x10 example of §4.3: the
+/// whole client side of a prioritized request stream (docs/PROTOCOL.md
+/// §4.10).
+const PRIORITY_STREAM_BYTES: &str = "05 00 00 00  14  fe ff ff ff  15 00 00 00  10  07 00 00 00 00 00 00 00  08 07 06 05 04 03 02 01  00 10 00 00";
+
+#[test]
+fn priority_frame_bytes_and_request_streams() {
+    let req = LodRequest {
+        id: 7,
+        offset: 0x0102_0304_0506_0708,
+        size: 4096,
+    };
+    let p = StreamPriority { priority: -2 };
+    assert_wire(Message::Priority(p), "05 00 00 00  14  fe ff ff ff");
+    assert_eq!(p.encode_frame().unwrap().len(), PRIORITY_FRAME_LEN);
+    assert_eq!(MessageType::from_u8(0x14), Some(MessageType::Priority));
+    assert_eq!(MessageType::Priority.as_str(), "priority");
+    let bytes = req.encode_stream(RequestKind::Record, Some(p)).unwrap();
+    assert_eq!(bytes, hex(PRIORITY_STREAM_BYTES));
+    assert_eq!(MAX_REQUEST_STREAM_LEN, 50);
+    // Every kind, with and without the frame.
+    let (_, floors) = refs_above_example();
+    for kind in [
+        RequestKind::Record,
+        RequestKind::RecordAndRefs,
+        RequestKind::RecordAndRefsAbove(floors),
+    ] {
+        for priority in [None, Some(p), Some(StreamPriority { priority: i32::MIN })] {
+            let bytes = req.encode_stream(kind, priority).unwrap();
+            assert!(bytes.len() <= MAX_REQUEST_STREAM_LEN);
+            assert_eq!(
+                decode_prioritized_request_stream(&bytes),
+                Ok(RequestStream {
+                    request: req,
+                    kind,
+                    priority
+                })
+            );
+            // Without a priority: the bytes of `encode_frame_as`, which a
+            // server that predates the frame reads.
+            if priority.is_none() {
+                assert_eq!(bytes, req.encode_frame_as(kind).unwrap());
+                assert_eq!(decode_any_request_stream(&bytes), Ok((req, kind)));
+            } else {
+                // Such a server refuses it (and answers with id 0).
+                assert_eq!(
+                    decode_any_request_stream(&bytes),
+                    Err(ProtocolError::UnexpectedMessage {
+                        got: MessageType::Priority,
+                        context: "on a request stream (expected lod_request, lod_refs_request or lod_refs_above_request)",
+                    })
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn a_priority_frame_goes_once_and_first() {
+    let req = LodRequest {
+        id: 7,
+        offset: 64,
+        size: 100,
+    };
+    let p = StreamPriority { priority: 5 }.encode_frame().unwrap();
+    let r = req.encode_frame_as(RequestKind::Record).unwrap();
+    // Alone: the stream ends before the request.
+    assert_eq!(
+        decode_prioritized_request_stream(&p),
+        Err(ProtocolError::UnexpectedEnd {
+            during: "before the request frame"
+        })
+    );
+    // Twice.
+    let twice = [p.clone(), p.clone(), r.clone()].concat();
+    assert!(matches!(
+        decode_prioritized_request_stream(&twice),
+        Err(ProtocolError::UnexpectedMessage {
+            got: MessageType::Priority,
+            ..
+        })
+    ));
+    // After the request.
+    let after = [r.clone(), p.clone()].concat();
+    assert_eq!(
+        decode_prioritized_request_stream(&after),
+        Err(ProtocolError::TrailingData {
+            extra: PRIORITY_FRAME_LEN as u64,
+            after: "request frame"
+        })
+    );
+    // Cut anywhere: an error, never a request.
+    let whole = [p, r].concat();
+    for cut in 0..whole.len() {
+        assert!(decode_prioritized_request_stream(&whole[..cut]).is_err());
+    }
+    // A priority frame with a body of the wrong length is malformed.
+    let long = hex("06 00 00 00  14  01 00 00 00 00");
+    assert!(decode_prioritized_request_stream(&[long, whole.clone()].concat()).is_err());
+}
+
+#[test]
+fn protocol_doc_shows_the_priority_stream_bytes() {
+    assert_doc_shows("### 4.10 `Priority` (0x14)", &hex(PRIORITY_STREAM_BYTES));
+}

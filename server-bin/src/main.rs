@@ -115,6 +115,12 @@ struct RunArgs {
     /// `child_tables` in the config.
     #[arg(long)]
     no_child_tables: bool,
+    /// Answer a request stream that begins with a `Priority` frame (0x14)
+    /// as a server that predates it does (`unknown_message`, id 0):
+    /// answers go in the order of the requests. Overrides
+    /// `stream_priority` in the config.
+    #[arg(long)]
+    no_stream_priority: bool,
     /// Tokio worker threads (default: one per CPU). 1 runs everything on
     /// a single-threaded runtime: no cross-thread wake-ups, one core at most.
     #[arg(long)]
@@ -205,6 +211,9 @@ fn build_config(args: &RunArgs) -> Result<ServerConfig> {
     }
     if args.no_child_tables {
         cfg.child_tables = false;
+    }
+    if args.no_stream_priority {
+        cfg.stream_priority = false;
     }
     if let (Some(c), Some(k)) = (&args.cert, &args.key) {
         cfg.tls = TlsSource::Pem {

@@ -13,6 +13,7 @@
 //! congestion = "bbr"                # "bbr" | "cubic" (congestion controller)
 //! zero_rtt = true                   # accept 0-RTT Hello on resumed sessions
 //! child_tables = true               # answer LodRefsRequest (0x12) with child tables
+//! stream_priority = true            # answer higher Priority (0x14) requests first
 //! initial_rtt_ms = 100              # RTT assumed before the first sample
 //! handshake_timeout_ms = 5000       # whole pre-auth phase (QUIC, Hello, Welcome)
 //! handshake_timeout_under_load_ms = 1000  # the same beyond retry_above_pending
@@ -330,6 +331,14 @@ pub struct ServerConfig {
     /// id 0 and `unknown_message`, and clients fall back to `LodRequest`
     /// (one tree level per round trip) for the rest of the connection.
     pub child_tables: bool,
+    /// Read a request stream's `Priority` frame (0x14, docs/PROTOCOL.md
+    /// §4.10) and send its response before those of the connection's
+    /// lower-priority requests still buffered. `false` (`stream_priority =
+    /// false` or `--no-stream-priority`) answers such a stream as a server
+    /// that predates the frame does, an error head with id 0 and
+    /// `unknown_message`: clients ask again without it, and answers go in
+    /// the order of the requests.
+    pub stream_priority: bool,
     /// Round-trip time assumed before the first sample, ms (RFC 9002's
     /// 333 ms by default in quinn; Chromium uses 100 ms). It sets the
     /// pacing rate of the first flight: a 0-RTT Welcome goes out before any
@@ -406,6 +415,7 @@ struct FileConfig {
     congestion: Option<String>,
     zero_rtt: Option<bool>,
     child_tables: Option<bool>,
+    stream_priority: Option<bool>,
     initial_rtt_ms: Option<u32>,
     handshake_timeout_ms: Option<u32>,
     handshake_timeout_under_load_ms: Option<u32>,
@@ -519,6 +529,7 @@ impl ServerConfig {
             congestion: Congestion::default(),
             zero_rtt: true,
             child_tables: true,
+            stream_priority: true,
             initial_rtt_ms: DEFAULT_INITIAL_RTT_MS,
             handshake_timeout: Duration::from_millis(u64::from(DEFAULT_HANDSHAKE_TIMEOUT_MS)),
             handshake_timeout_under_load: Duration::from_millis(u64::from(
@@ -598,6 +609,9 @@ impl ServerConfig {
         }
         if let Some(c) = file.child_tables {
             cfg.child_tables = c;
+        }
+        if let Some(p) = file.stream_priority {
+            cfg.stream_priority = p;
         }
         if let Some(r) = file.initial_rtt_ms {
             cfg.initial_rtt_ms = r;

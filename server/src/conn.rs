@@ -14,9 +14,9 @@ use futures_util::stream::{FuturesUnordered, StreamExt};
 use futures_util::FutureExt;
 use planet_core::format::{child_tables_for, record_checksum_ok, ChildRef, SUPERBLOCK_LEN};
 use planet_protocol::{
-    decode_any_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello, InFlight,
-    Limits, LodRequest, ProtocolError, RequestKind, ResponseHead, ServerEvent, ServerSession,
-    Welcome, MAX_REQUEST_FRAME_LEN,
+    decode_prioritized_request_stream, quic, Authorizer, ErrorCode, ErrorMsg, Goodbye, Hello,
+    InFlight, Limits, LodRequest, MessageType, ProtocolError, RequestKind, ResponseHead,
+    ServerEvent, ServerSession, Welcome, MAX_REQUEST_STREAM_LEN,
 };
 use quinn::{RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
@@ -695,7 +695,7 @@ async fn serve_request(
     let metrics = &ctx.shared.metrics;
     let read = tokio::time::timeout(
         REQUEST_READ_TIMEOUT,
-        recv.read_to_end(MAX_REQUEST_FRAME_LEN),
+        recv.read_to_end(MAX_REQUEST_STREAM_LEN),
     );
     let bytes = match read.await {
         Ok(Ok(b)) => b,
@@ -732,16 +732,29 @@ async fn serve_request(
     // children's child tables (above the request's floors for 0x13). With
     // child tables turned off, 0x12 and 0x13 are unknown frames, as on a
     // server that predates them (id 0; docs/PROTOCOL.md §7), so clients
-    // fall back.
-    let decoded = decode_any_request_stream(&bytes).and_then(|(req, kind)| {
-        if kind.has_refs() && !ctx.shared.cfg.child_tables {
-            Err(ProtocolError::UnknownMessageType(kind.msg_type().as_u8()))
+    // fall back; so is 0x14 with priorities turned off.
+    let decoded = decode_prioritized_request_stream(&bytes).and_then(|s| {
+        if s.kind.has_refs() && !ctx.shared.cfg.child_tables {
+            Err(ProtocolError::UnknownMessageType(s.kind.msg_type().as_u8()))
+        } else if s.priority.is_some() && !ctx.shared.cfg.stream_priority {
+            Err(ProtocolError::UnknownMessageType(
+                MessageType::Priority.as_u8(),
+            ))
         } else {
-            Ok((req, kind))
+            Ok(s)
         }
     });
     let (req, kind) = match decoded {
-        Ok(r) => r,
+        Ok(s) => {
+            // The response leaves before those of lower priority still in
+            // QUIC's send buffer (docs/PROTOCOL.md §4.10); among equal
+            // priorities, in the order written (`send_fairness(false)`).
+            if let Some(p) = s.priority {
+                // Fails only on a stream already reset.
+                let _ = send.set_priority(p.priority);
+            }
+            (s.request, s.kind)
+        }
         Err(e) => {
             let (t, d) = ctx.established.get().map_or((NO_TENANT, NO_TENANT), |e| {
                 (e.tenant.cfg.name.as_str(), e.db.name.as_str())

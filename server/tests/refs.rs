@@ -14,7 +14,7 @@ use planet_core::format::{
     CHILD_TABLE_UNKNOWN,
 };
 use planet_core::{BlockId, Datum, Face};
-use planet_protocol::{ErrorCode, ErrorFloors, MAX_REFS_TRAILER_LEN};
+use planet_protocol::{ErrorCode, ErrorFloors, RequestKind, StreamPriority, MAX_REFS_TRAILER_LEN};
 use planet_server::{Server, ServerConfig};
 use planet_session::net::{Connection, NetError, NetEvent, Session, SessionConfig};
 
@@ -296,6 +296,86 @@ async fn refused_floors_fall_back_to_plain_requests() {
         metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
         refused,
         "later requests are LodRequests from the start"
+    );
+    conn.close();
+    h.shutdown().await;
+}
+
+/// A request stream that begins with a `Priority` frame (docs/PROTOCOL.md
+/// §4.10): a server with priorities answers it as any request; one with
+/// them turned off, as a server that predates the frame (id 0,
+/// `unknown_message`), and the session asks again without it, and sends
+/// none on that connection from then on (§7).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_priority_frame_is_answered_or_dropped_where_refused() {
+    let p = Some(StreamPriority { priority: 7 });
+    for priorities in [true, false] {
+        let dir = tempfile::tempdir().unwrap();
+        let h = three_level_server_with(dir.path(), false, |cfg| cfg.stream_priority = priorities)
+            .await;
+        let (conn, _, header) = open(&h).await;
+        let root = header.elevation.root_records[0];
+        let record = conn.fetch(1, root.offset, root.size).await.unwrap();
+        let got = conn
+            .fetch_as(2, root.offset, root.size, RequestKind::Record, p)
+            .await
+            .unwrap();
+        assert_eq!(got, record);
+        // With child tables: the refs request keeps its kind either way.
+        let floors = ErrorFloors::new([0.0; 4]).unwrap();
+        let refs = RequestKind::RecordAndRefsAbove(floors);
+        let got = conn
+            .fetch_as(3, root.offset, root.size, refs, p)
+            .await
+            .unwrap();
+        assert!(got.len() > record.len() && got.starts_with(&record));
+        assert_eq!(conn.priority_refused(), !priorities, "{priorities}");
+        assert!(!conn.table_floors_refused() && !conn.child_tables_refused());
+        let text = wait_metrics(&h, |t| {
+            metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 3.0
+        })
+        .await;
+        assert_eq!(
+            metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
+            if priorities { 0.0 } else { 1.0 },
+            "one refusal, then requests without the frame ({priorities})"
+        );
+        conn.close();
+        h.shutdown().await;
+    }
+}
+
+/// A server with child tables off and priorities on refuses a prioritized
+/// `LodRefsAboveRequest` for its type: the session drops the priority
+/// first (it cannot tell which frame was unknown), then falls down the
+/// kinds, and gets the record alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_prioritized_refs_request_falls_back_to_a_plain_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
+    let (conn, _, header) = open(&h).await;
+    let root = header.elevation.root_records[0];
+    let floors = ErrorFloors::new([0.0; 4]).unwrap();
+    let got = conn
+        .fetch_as(
+            10,
+            root.offset,
+            root.size,
+            RequestKind::RecordAndRefsAbove(floors),
+            Some(StreamPriority { priority: 1 }),
+        )
+        .await
+        .unwrap();
+    assert_eq!(got.len(), root.size as usize, "the record alone");
+    assert!(conn.priority_refused() && conn.table_floors_refused() && conn.child_tables_refused());
+    let text = wait_metrics(&h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 1.0
+    })
+    .await;
+    assert_eq!(
+        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
+        3.0,
+        "with the priority, then 0x13, then 0x12"
     );
     conn.close();
     h.shutdown().await;

@@ -477,8 +477,9 @@ async fn run_http(
                     &ev,
                     // The kind is ignored: a byte range is the record
                     // alone, so `request_refs` (and `request_refs_above`)
-                    // is `request` on this transport.
-                    move |_id, offset, size, _kind| {
+                    // is `request` on this transport. So is the priority:
+                    // the requests go in the order they are made.
+                    move |_id, offset, size, _kind, _priority| {
                         let c = c.clone();
                         async move { c.fetch(offset, size).await }
                     },

@@ -24,7 +24,8 @@ use std::time::Duration;
 use planet_client::TransportError;
 use planet_protocol::{
     quic, ClientHandshake, ErrorCode, ErrorFloors, ErrorMsg, FrameDecoder, HandshakeOutcome, Hello,
-    LodRequest, Message, ProtocolError, RequestKind, Response, ResponseDecoder, Welcome,
+    LodRequest, Message, ProtocolError, RequestKind, Response, ResponseDecoder, StreamPriority,
+    Welcome,
 };
 use quinn::VarInt;
 use tokio::sync::{mpsc, oneshot, watch};
@@ -247,6 +248,9 @@ struct Inner {
     refs_refused: AtomicBool,
     /// The server answered a `LodRefsAboveRequest` (0x13) as unknown.
     floors_refused: AtomicBool,
+    /// The server answered a request stream that began with a `Priority`
+    /// frame (0x14) as unknown: requests go without it from then on.
+    priority_refused: AtomicBool,
 }
 
 impl Inner {
@@ -413,6 +417,7 @@ impl Connection {
             zero_rtt_refused: refused,
             refs_refused: AtomicBool::new(false),
             floors_refused: AtomicBool::new(false),
+            priority_refused: AtomicBool::new(false),
         };
         Ok((
             Connection {
@@ -446,6 +451,13 @@ impl Connection {
     /// `LodRequest` and returns the record alone.
     pub fn child_tables_refused(&self) -> bool {
         self.inner.refs_refused.load(Ordering::Relaxed)
+    }
+
+    /// Whether the server answered a request stream that began with a
+    /// `Priority` frame (0x14) as unknown: later requests on this
+    /// connection are sent without one ([`Connection::fetch_as`]).
+    pub fn priority_refused(&self) -> bool {
+        self.inner.priority_refused.load(Ordering::Relaxed)
     }
 
     /// Whether the server answered a `LodRefsAboveRequest` (0x13) as an
@@ -502,7 +514,7 @@ impl Connection {
         offset: u64,
         size: u32,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
-        self.fetch_kind(id, offset, size, RequestKind::Record)
+        self.fetch_kind(id, offset, size, RequestKind::Record, None)
     }
 
     /// Fetches the record at `offset` of `size` bytes with a
@@ -525,7 +537,7 @@ impl Connection {
         offset: u64,
         size: u32,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
-        self.fetch_as(id, offset, size, RequestKind::RecordAndRefs)
+        self.fetch_as(id, offset, size, RequestKind::RecordAndRefs, None)
     }
 
     /// As [`Connection::fetch_refs`], with a `LodRefsAboveRequest`
@@ -543,17 +555,26 @@ impl Connection {
         size: u32,
         floors: ErrorFloors,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
-        self.fetch_as(id, offset, size, RequestKind::RecordAndRefsAbove(floors))
+        self.fetch_as(
+            id,
+            offset,
+            size,
+            RequestKind::RecordAndRefsAbove(floors),
+            None,
+        )
     }
 
     /// A request of `kind`, or of the kind it falls back to when this
-    /// connection's server refused it before.
-    fn fetch_as(
+    /// connection's server refused it before, after a `Priority` frame
+    /// (docs/PROTOCOL.md §4.10) when `priority` is given and the server did
+    /// not refuse one before ([`Connection::priority_refused`]).
+    pub fn fetch_as(
         &self,
         id: u64,
         offset: u64,
         size: u32,
         mut kind: RequestKind,
+        priority: Option<StreamPriority>,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
         // Down the fallback chain (0x13 → 0x12 → 0x10) past every kind
         // this connection's server refused before.
@@ -567,7 +588,8 @@ impl Connection {
                 None => break,
             }
         }
-        self.fetch_kind(id, offset, size, kind)
+        let priority = priority.filter(|_| !self.priority_refused());
+        self.fetch_kind(id, offset, size, kind, priority)
     }
 
     fn fetch_kind(
@@ -576,17 +598,32 @@ impl Connection {
         offset: u64,
         size: u32,
         kind: RequestKind,
+        priority: Option<StreamPriority>,
     ) -> impl std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static {
         let req = LodRequest { id, offset, size };
         // Queued now, in call order.
-        let opened = self.enqueue(&req, kind);
+        let opened = self.enqueue(&req, kind, priority);
         // The connection lives while one of its requests does.
         let this = self.clone();
         async move {
             let fut = async {
-                let (mut opened, mut kind) = (opened, kind);
+                let (mut opened, mut kind, mut priority) = (opened, kind, priority);
                 loop {
                     match read_response(opened, req, kind).await {
+                        // A server that does not know the `Priority` frame
+                        // answers as it answers an unknown request type:
+                        // the same request again without it, and none on
+                        // this connection from then on. (If the unknown
+                        // frame was the request's type, the retry falls
+                        // down its kinds next.)
+                        Err(e) if priority.is_some() && refs_unknown(&e, req.id) => {
+                            this.inner.priority_refused.store(true, Ordering::Relaxed);
+                            tracing::debug!(
+                                "server does not answer a priority frame; sending none"
+                            );
+                            priority = None;
+                            opened = this.enqueue(&req, kind, None);
+                        }
                         Err(e) if kind.has_refs() && refs_unknown(&e, req.id) => {
                             if let Some(refused) = this.inner.refused(kind) {
                                 refused.store(true, Ordering::Relaxed);
@@ -600,7 +637,7 @@ impl Connection {
                                 "server does not answer a request type; falling back"
                             );
                             kind = next;
-                            opened = this.enqueue(&req, kind);
+                            opened = this.enqueue(&req, kind, None);
                         }
                         r => return r,
                     }
@@ -617,13 +654,15 @@ impl Connection {
         }
     }
 
-    /// Queues `req` as a request of `kind` for [`open_in_order`].
+    /// Queues `req` as a request of `kind` for [`open_in_order`], after a
+    /// `Priority` frame when `priority` is given.
     fn enqueue(
         &self,
         req: &LodRequest,
         kind: RequestKind,
+        priority: Option<StreamPriority>,
     ) -> Result<oneshot::Receiver<Opened>, NetError> {
-        let frame = req.encode_frame_as(kind)?;
+        let frame = req.encode_stream(kind, priority)?;
         let (reply, opened) = oneshot::channel();
         self.inner
             .opener
@@ -929,11 +968,14 @@ impl SessionConfig {
 pub(crate) enum Cmd {
     /// `kind`: with child tables or not (QUIC; the HTTP transport sends
     /// every kind as a plain byte range).
+    /// `priority`: the response's, before the request (QUIC; the HTTP
+    /// transport has none).
     Request {
         id: u64,
         offset: u64,
         size: u32,
         kind: RequestKind,
+        priority: Option<StreamPriority>,
     },
     Cancel {
         id: u64,
@@ -1014,6 +1056,7 @@ impl SessionHandle {
             offset,
             size,
             kind: RequestKind::Record,
+            priority: None,
         });
     }
 
@@ -1033,6 +1076,7 @@ impl SessionHandle {
             offset,
             size,
             kind: RequestKind::RecordAndRefs,
+            priority: None,
         });
     }
 
@@ -1043,14 +1087,36 @@ impl SessionHandle {
     /// that table whatever its errors. A server that predates 0x13 gets the
     /// request as a `LodRefsRequest` ([`Connection::fetch_refs_above`]).
     pub fn request_refs_above(&self, id: u64, offset: u64, size: u32, floors: [f32; 4]) {
-        let floors = floors.map(|f| if f >= 0.0 { f } else { 0.0 });
-        let kind = ErrorFloors::new(floors)
-            .map_or(RequestKind::RecordAndRefs, RequestKind::RecordAndRefsAbove);
+        self.request_with(id, offset, size, Some(floors), None);
+    }
+
+    /// A request of any kind with any priority (non-blocking): as
+    /// [`SessionHandle::request_refs_above`] with `floors`, as
+    /// [`SessionHandle::request`] without. A `priority` is sent before the
+    /// request in a `Priority` frame (docs/PROTOCOL.md §4.10): the server
+    /// sends the response before those of this connection's requests with a
+    /// lower one (a request without has priority 0). A server that predates
+    /// the frame gets the request again without it
+    /// ([`Connection::fetch_as`]); an HTTP session ignores it.
+    pub fn request_with(
+        &self,
+        id: u64,
+        offset: u64,
+        size: u32,
+        floors: Option<[f32; 4]>,
+        priority: Option<i32>,
+    ) {
+        let kind = floors.map_or(RequestKind::Record, |floors| {
+            let floors = floors.map(|f| if f >= 0.0 { f } else { 0.0 });
+            ErrorFloors::new(floors)
+                .map_or(RequestKind::RecordAndRefs, RequestKind::RecordAndRefsAbove)
+        });
         let _ = self.cmd.send(Cmd::Request {
             id,
             offset,
             size,
             kind,
+            priority: priority.map(|priority| StreamPriority { priority }),
         });
     }
 
@@ -1170,7 +1236,9 @@ async fn run_session(
                     &ev,
                     // Called in the order of the requests: each takes its
                     // place in the connection's order at once.
-                    move |id, offset, size, kind| c.fetch_as(id, offset, size, kind),
+                    move |id, offset, size, kind, priority| {
+                        c.fetch_as(id, offset, size, kind, priority)
+                    },
                     conn.closed(),
                 )
                 .await;
@@ -1233,7 +1301,7 @@ pub(crate) async fn serve_requests<Fetch, Fut>(
     closed: impl std::future::Future<Output = NetError>,
 ) -> bool
 where
-    Fetch: Fn(u64, u64, u32, RequestKind) -> Fut,
+    Fetch: Fn(u64, u64, u32, RequestKind, Option<StreamPriority>) -> Fut,
     Fut: std::future::Future<Output = Result<Vec<u8>, NetError>> + Send + 'static,
 {
     let mut tasks: JoinSet<(u64, Result<Vec<u8>, NetError>)> = JoinSet::new();
@@ -1252,7 +1320,7 @@ where
         tokio::select! {
             c = cmd_rx.recv() => match c {
                 None | Some(Cmd::Close) => break true,
-                Some(Cmd::Request { id, offset, size, kind }) => {
+                Some(Cmd::Request { id, offset, size, kind, priority }) => {
                     if pending.contains_key(&id) {
                         let _ = ev.send(NetEvent::Failed {
                             id,
@@ -1263,7 +1331,7 @@ where
                         });
                         continue;
                     }
-                    let f = fetch(id, offset, size, kind);
+                    let f = fetch(id, offset, size, kind, priority);
                     let h = tasks.spawn(async move { (id, f.await) });
                     pending.insert(id, h);
                 }

@@ -175,13 +175,8 @@ impl StreamingClient {
         }
         let out = self.client.frame(camera, dt);
         for s in &out.send {
-            match s.refs {
-                Some(floors) => {
-                    self.session
-                        .request_refs_above(s.id, s.record.offset, s.record.size, floors)
-                }
-                None => self.session.request(s.id, s.record.offset, s.record.size),
-            }
+            self.session
+                .request_with(s.id, s.record.offset, s.record.size, s.refs, s.priority);
         }
         self.counters.requests += out.send.len() as u64;
         for &id in &out.cancel {

@@ -12,8 +12,8 @@ use planet_core::format::{Header, Superblock, SUPERBLOCK_LEN};
 use planet_core::{codec, format};
 use planet_preprocess::crs::{Crs, GeoKeys};
 use planet_protocol::{
-    decode_any_request_stream, decode_request_stream, ErrorFloors, FrameDecoder, LodRequest,
-    RequestKind, ResponseDecoder,
+    decode_any_request_stream, decode_prioritized_request_stream, decode_request_stream,
+    ErrorFloors, FrameDecoder, LodRequest, RequestKind, ResponseDecoder,
 };
 
 /// The CRC-32 (IEEE) of the database format, used to repair inputs so the
@@ -36,6 +36,7 @@ pub fn protocol_frames(data: &[u8]) {
     let _ = dec.finish();
     let _ = decode_request_stream(data);
     let _ = decode_any_request_stream(data);
+    let _ = decode_prioritized_request_stream(data);
     let req = LodRequest {
         id: 7,
         offset: 64,
