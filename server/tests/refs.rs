@@ -263,42 +263,42 @@ async fn tables_under_their_floors_are_left_out() {
 /// A server with child tables turned off refuses 0x13 as it does 0x12: the
 /// session asks again as a `LodRefsRequest`, then as a `LodRequest`, and
 /// sends later ones as `LodRequest` straight away (docs/PROTOCOL.md §7).
+/// With a `Priority` frame before the first, the session drops the
+/// priority first (it cannot tell which frame was unknown), then falls
+/// down the kinds: one refusal more, and no priorities on that connection.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn refused_floors_fall_back_to_plain_requests() {
-    let dir = tempfile::tempdir().unwrap();
-    let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
-    let (conn, _, header) = open(&h).await;
-    let root = header.elevation.root_records[0];
-    let floors = ErrorFloors::new([0.0; 4]).unwrap();
-    let got = conn
-        .fetch_refs_above(10, root.offset, root.size, floors)
-        .await
-        .unwrap();
-    let record = conn.fetch(11, root.offset, root.size).await.unwrap();
-    assert_eq!(got, record, "the record alone");
-    assert!(conn.table_floors_refused() && conn.child_tables_refused());
-    let text = wait_metrics(&h, |t| {
-        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 2.0
-    })
-    .await;
-    let refused = metric(&text, "planet_requests_total", &[("outcome", "invalid")]);
-    assert_eq!(refused, 2.0, "0x13, then 0x12");
-    let got = conn
-        .fetch_refs_above(12, root.offset, root.size, floors)
-        .await
-        .unwrap();
-    assert_eq!(got, record);
-    let text = wait_metrics(&h, |t| {
-        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 3.0
-    })
-    .await;
-    assert_eq!(
-        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
-        refused,
-        "later requests are LodRequests from the start"
-    );
-    conn.close();
-    h.shutdown().await;
+    for priority in [None, Some(StreamPriority { priority: 1 })] {
+        let dir = tempfile::tempdir().unwrap();
+        let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
+        let (conn, _, header) = open(&h).await;
+        let root = header.elevation.root_records[0];
+        let floors = ErrorFloors::new([0.0; 4]).unwrap();
+        let kind = RequestKind::RecordAndRefsAbove(floors);
+        let got = conn
+            .fetch_as(10, root.offset, root.size, kind, priority)
+            .await
+            .unwrap();
+        let record = conn.fetch(11, root.offset, root.size).await.unwrap();
+        assert_eq!(got, record, "the record alone");
+        assert!(conn.table_floors_refused() && conn.child_tables_refused());
+        assert_eq!(conn.priority_refused(), priority.is_some());
+        let refused = invalid_once_ok(&h, 2.0).await;
+        let expected = if priority.is_some() { 3.0 } else { 2.0 };
+        assert_eq!(refused, expected, "(the priority), 0x13, then 0x12");
+        let got = conn
+            .fetch_as(12, root.offset, root.size, kind, priority)
+            .await
+            .unwrap();
+        assert_eq!(got, record);
+        let invalid = invalid_once_ok(&h, 3.0).await;
+        assert_eq!(
+            invalid, refused,
+            "later requests are LodRequests from the start"
+        );
+        conn.close();
+        h.shutdown().await;
+    }
 }
 
 /// A request stream that begins with a `Priority` frame (docs/PROTOCOL.md
@@ -331,12 +331,9 @@ async fn a_priority_frame_is_answered_or_dropped_where_refused() {
         assert!(got.len() > record.len() && got.starts_with(&record));
         assert_eq!(conn.priority_refused(), !priorities, "{priorities}");
         assert!(!conn.table_floors_refused() && !conn.child_tables_refused());
-        let text = wait_metrics(&h, |t| {
-            metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 3.0
-        })
-        .await;
+        let invalid = invalid_once_ok(&h, 3.0).await;
         assert_eq!(
-            metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
+            invalid,
             if priorities { 0.0 } else { 1.0 },
             "one refusal, then requests without the frame ({priorities})"
         );
@@ -345,40 +342,14 @@ async fn a_priority_frame_is_answered_or_dropped_where_refused() {
     }
 }
 
-/// A server with child tables off and priorities on refuses a prioritized
-/// `LodRefsAboveRequest` for its type: the session drops the priority
-/// first (it cannot tell which frame was unknown), then falls down the
-/// kinds, and gets the record alone.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_prioritized_refs_request_falls_back_to_a_plain_one() {
-    let dir = tempfile::tempdir().unwrap();
-    let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
-    let (conn, _, header) = open(&h).await;
-    let root = header.elevation.root_records[0];
-    let floors = ErrorFloors::new([0.0; 4]).unwrap();
-    let got = conn
-        .fetch_as(
-            10,
-            root.offset,
-            root.size,
-            RequestKind::RecordAndRefsAbove(floors),
-            Some(StreamPriority { priority: 1 }),
-        )
-        .await
-        .unwrap();
-    assert_eq!(got.len(), root.size as usize, "the record alone");
-    assert!(conn.priority_refused() && conn.table_floors_refused() && conn.child_tables_refused());
-    let text = wait_metrics(&h, |t| {
-        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 1.0
+/// The requests the server refused as invalid, once it has answered `ok`
+/// of them.
+async fn invalid_once_ok(h: &planet_server::ServerHandle, ok: f64) -> f64 {
+    let text = wait_metrics(h, |t| {
+        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= ok
     })
     .await;
-    assert_eq!(
-        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
-        3.0,
-        "with the priority, then 0x13, then 0x12"
-    );
-    conn.close();
-    h.shutdown().await;
+    metric(&text, "planet_requests_total", &[("outcome", "invalid")])
 }
 
 /// The child references of the record `r` (from the record itself).
@@ -412,11 +383,7 @@ async fn a_server_without_child_tables_gets_plain_requests() {
         assert_eq!(got, record, "the record alone");
     }
     assert!(conn.child_tables_refused());
-    let text = wait_metrics(&h, |t| {
-        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 12.0
-    })
-    .await;
-    let refused = metric(&text, "planet_requests_total", &[("outcome", "invalid")]);
+    let refused = invalid_once_ok(&h, 12.0).await;
     assert!((1.0..=6.0).contains(&refused), "{refused}");
     // Later requests go out as LodRequest straight away.
     let got = conn
@@ -424,14 +391,8 @@ async fn a_server_without_child_tables_gets_plain_requests() {
         .await
         .unwrap();
     assert_eq!(got.len(), roots[0].size as usize);
-    let text = wait_metrics(&h, |t| {
-        metric(t, "planet_requests_total", &[("outcome", "ok")]) >= 13.0
-    })
-    .await;
-    assert_eq!(
-        metric(&text, "planet_requests_total", &[("outcome", "invalid")]),
-        refused
-    );
+    let invalid = invalid_once_ok(&h, 13.0).await;
+    assert_eq!(invalid, refused);
     conn.close();
     h.shutdown().await;
 }

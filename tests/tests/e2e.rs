@@ -276,6 +276,33 @@ fn random_camera_moves_keep_the_tree_valid() {
         .expect("property");
 }
 
+/// The small database's server behind a 2 Mbit/s, 10 ms link (kept while
+/// the two are held), and the session configuration that reaches it
+/// through the link.
+fn behind_a_2mbit_link(
+    rt: &tokio::runtime::Runtime,
+) -> (LocalServer, Link, planet_session::net::SessionConfig) {
+    let server = LocalServer::start(rt.handle(), small_db()).expect("server");
+    let link = rt
+        .block_on(Link::start_symmetric(
+            server.addr(),
+            "2mbit,10ms".parse::<LinkConfig>().expect("link"),
+        ))
+        .expect("link");
+    let cfg = server.session_config(link.local_addr()).expect("config");
+    (server, link, cfg)
+}
+
+/// A connection of the session library alone (no client) made with `cfg`.
+async fn connect_session(
+    cfg: planet_session::net::SessionConfig,
+) -> planet_session::net::Connection {
+    planet_session::net::Connection::connect(cfg.addr, &cfg.server_name, cfg.tls, cfg.hello)
+        .await
+        .map(|(c, _)| c)
+        .expect("connect")
+}
+
 /// Requests made one after the other are answered in that order, whatever
 /// order the tasks awaiting them run in (docs/PROTOCOL.md §5.2): the client
 /// asks its most important record first, and it must not come last. Over a
@@ -284,15 +311,8 @@ fn random_camera_moves_keep_the_tree_valid() {
 #[test]
 fn requests_are_answered_in_the_order_they_are_made() {
     use planet_core::format::{record_child_refs, ChildRef, DbFile};
-    use planet_session::net::Connection;
     let rt = runtime(2).expect("runtime");
-    let server = LocalServer::start(rt.handle(), small_db()).expect("server");
-    let link = rt
-        .block_on(Link::start_symmetric(
-            server.addr(),
-            "2mbit,10ms".parse::<LinkConfig>().expect("link"),
-        ))
-        .expect("link");
+    let (_server, _link, cfg) = behind_a_2mbit_link(&rt);
     // The roots' records and their children's: the larger ones, largest
     // first (a round robin, or a race between tasks, would finish the small
     // ones first).
@@ -305,12 +325,8 @@ fn requests_are_answered_in_the_order_they_are_made() {
     refs.sort_by_key(|r| std::cmp::Reverse(r.size));
     refs.truncate(12);
     assert!(refs.iter().all(|r| r.size >= 500), "{refs:?}");
-    let cfg = server.session_config(link.local_addr()).expect("config");
     let done = rt.block_on(async move {
-        let conn = Connection::connect(cfg.addr, &cfg.server_name, cfg.tls, cfg.hello)
-            .await
-            .map(|(c, _)| c)
-            .expect("connect");
+        let conn = connect_session(cfg).await;
         let futs: Vec<_> = refs
             .iter()
             .enumerate()
@@ -347,15 +363,8 @@ fn requests_are_answered_in_the_order_they_are_made() {
 fn a_higher_priority_overtakes_answers_still_buffered() {
     use planet_core::format::DbFile;
     use planet_protocol::{RequestKind, StreamPriority};
-    use planet_session::net::Connection;
     let rt = runtime(2).expect("runtime");
-    let server = LocalServer::start(rt.handle(), small_db()).expect("server");
-    let link = rt
-        .block_on(Link::start_symmetric(
-            server.addr(),
-            "2mbit,10ms".parse::<LinkConfig>().expect("link"),
-        ))
-        .expect("link");
+    let (_server, _link, cfg) = behind_a_2mbit_link(&rt);
     let db = DbFile::open(small_db()).expect("open");
     let r = db
         .header
@@ -365,14 +374,10 @@ fn a_higher_priority_overtakes_answers_still_buffered() {
         .max_by_key(|r| r.size)
         .copied()
         .expect("a root");
-    let cfg = server.session_config(link.local_addr()).expect("config");
     let overtaken = |last: i32| {
         let cfg = cfg.clone();
         rt.block_on(async move {
-            let conn = Connection::connect(cfg.addr, &cfg.server_name, cfg.tls, cfg.hello)
-                .await
-                .map(|(c, _)| c)
-                .expect("connect");
+            let conn = connect_session(cfg).await;
             let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
             let low = Some(StreamPriority { priority: -1 });
             for id in 1..=40u64 {
