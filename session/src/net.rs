@@ -616,7 +616,7 @@ impl Connection {
                         // this connection from then on. (If the unknown
                         // frame was the request's type, the retry falls
                         // down its kinds next.)
-                        Err(e) if priority.is_some() && refs_unknown(&e, req.id) => {
+                        Err(e) if priority.is_some() && frame_unknown(&e, req.id) => {
                             this.inner.priority_refused.store(true, Ordering::Relaxed);
                             tracing::debug!(
                                 "server does not answer a priority frame; sending none"
@@ -624,7 +624,7 @@ impl Connection {
                             priority = None;
                             opened = this.enqueue(&req, kind, None);
                         }
-                        Err(e) if kind.has_refs() && refs_unknown(&e, req.id) => {
+                        Err(e) if kind.has_refs() && frame_unknown(&e, req.id) => {
                             if let Some(refused) = this.inner.refused(kind) {
                                 refused.store(true, Ordering::Relaxed);
                             }
@@ -681,12 +681,12 @@ impl Connection {
 }
 
 /// Whether `e`, the answer to a well-formed `LodRefsRequest` (or
-/// `LodRefsAboveRequest`) of id `id`, says the server does not know 0x12
-/// (0x13): an error head with id 0 (a server
-/// answers id 0 only to a request stream it cannot decode, §5.2), which the
-/// response decoder reports as an id mismatch, or `unknown_message` itself
-/// when the request's id was 0.
-fn refs_unknown(e: &NetError, id: u64) -> bool {
+/// `LodRefsAboveRequest`, or any request after a `Priority` frame) of id
+/// `id`, says the server does not know 0x12 (0x13, 0x14): an error head
+/// with id 0 (a server answers id 0 only to a request stream it cannot
+/// decode, §5.2), which the response decoder reports as an id mismatch, or
+/// `unknown_message` itself when the request's id was 0.
+fn frame_unknown(e: &NetError, id: u64) -> bool {
     match e {
         NetError::Protocol(ProtocolError::ResponseIdMismatch { got: 0, .. }) => true,
         NetError::Server(m) => id == 0 && m.code == ErrorCode::UnknownMessage,
