@@ -38,10 +38,10 @@ pub fn decode_request_stream(bytes: &[u8]) -> Result<LodRequest, ProtocolError> 
 /// Decodes the whole client side of a request stream (read to its end, at
 /// most [`crate::MAX_REQUEST_FRAME_LEN`] bytes): exactly one `LodRequest`,
 /// `LodRefsRequest` or `LodRefsAboveRequest` frame, with the kind of
-/// request it is.
-/// A `Priority` frame is refused here, as a server that predates it
-/// refuses it; a server that reads it uses
-/// [`decode_prioritized_request_stream`].
+/// request it is. A `Priority` frame is refused here, as an unexpected
+/// message; a server that reads it uses
+/// [`decode_prioritized_request_stream`] (and one that turns priorities
+/// off answers it as `unknown_message`, as a server that predates it).
 pub fn decode_any_request_stream(bytes: &[u8]) -> Result<(LodRequest, RequestKind), ProtocolError> {
     decode_stream(
         bytes,
