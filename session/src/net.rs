@@ -1051,13 +1051,7 @@ impl SessionHandle {
     /// Requests a record (non-blocking). The result arrives as
     /// [`NetEvent::Record`] or [`NetEvent::Failed`].
     pub fn request(&self, id: u64, offset: u64, size: u32) {
-        let _ = self.cmd.send(Cmd::Request {
-            id,
-            offset,
-            size,
-            kind: RequestKind::Record,
-            priority: None,
-        });
+        self.request_with(id, offset, size, None, None);
     }
 
     /// Requests a record and the child tables of its children

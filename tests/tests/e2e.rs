@@ -12,13 +12,7 @@ use std::time::{Duration, Instant};
 #[test]
 fn static_camera_converges_to_exact_samples() {
     let rt = runtime(2).expect("runtime");
-    let server = LocalServer::start(rt.handle(), small_db()).expect("server");
-    let link = rt
-        .block_on(Link::start_symmetric(
-            server.addr(),
-            "50mbit,5ms".parse::<LinkConfig>().expect("link"),
-        ))
-        .expect("link");
+    let (server, link) = served_through(&rt, "50mbit,5ms");
     let mut sc = connect(&rt, &server, link.local_addr());
     let camera = static_camera();
     let out = converge(&mut sc, &camera, Duration::from_secs(30), |_, _| {});
@@ -30,13 +24,7 @@ fn static_camera_converges_to_exact_samples() {
 #[test]
 fn no_request_behind_the_horizon() {
     let rt = runtime(2).expect("runtime");
-    let server = LocalServer::start(rt.handle(), small_db()).expect("server");
-    let link = rt
-        .block_on(Link::start_symmetric(
-            server.addr(),
-            "50mbit,5ms".parse::<LinkConfig>().expect("link"),
-        ))
-        .expect("link");
+    let (server, link) = served_through(&rt, "50mbit,5ms");
     let mut sc = connect(&rt, &server, link.local_addr());
     let h = sc.header().clone();
     let datum = h.datum;
@@ -103,13 +91,7 @@ fn no_request_behind_the_horizon() {
 #[test]
 fn server_restart_is_survived() {
     let rt = runtime(2).expect("runtime");
-    let mut server = LocalServer::start(rt.handle(), small_db()).expect("server");
-    let link = rt
-        .block_on(Link::start_symmetric(
-            server.addr(),
-            "20mbit,10ms".parse::<LinkConfig>().expect("link"),
-        ))
-        .expect("link");
+    let (mut server, link) = served_through(&rt, "20mbit,10ms");
     let mut sc = connect(&rt, &server, link.local_addr());
     let camera = static_camera();
     // Stream a little, then stop the server mid-stream.
@@ -176,13 +158,7 @@ fn lossy_reordering_link_converges() {
 #[test]
 fn blackhole_then_recovery_converges() {
     let rt = runtime(2).expect("runtime");
-    let server = LocalServer::start(rt.handle(), small_db()).expect("server");
-    let link = rt
-        .block_on(Link::start_symmetric(
-            server.addr(),
-            "10mbit,20ms".parse::<LinkConfig>().expect("link"),
-        ))
-        .expect("link");
+    let (server, link) = served_through(&rt, "10mbit,20ms");
     let mut sc = connect(&rt, &server, link.local_addr());
     let camera = static_camera();
     for _ in 0..10 {
@@ -276,19 +252,25 @@ fn random_camera_moves_keep_the_tree_valid() {
         .expect("property");
 }
 
-/// The small database's server behind a 2 Mbit/s, 10 ms link (kept while
-/// the two are held), and the session configuration that reaches it
-/// through the link.
-fn behind_a_2mbit_link(
-    rt: &tokio::runtime::Runtime,
-) -> (LocalServer, Link, planet_session::net::SessionConfig) {
+/// The small database's server behind a symmetric link of `spec`
+/// (`LinkConfig`'s syntax); both run while they are held.
+fn served_through(rt: &tokio::runtime::Runtime, spec: &str) -> (LocalServer, Link) {
     let server = LocalServer::start(rt.handle(), small_db()).expect("server");
     let link = rt
         .block_on(Link::start_symmetric(
             server.addr(),
-            "2mbit,10ms".parse::<LinkConfig>().expect("link"),
+            spec.parse::<LinkConfig>().expect("link"),
         ))
         .expect("link");
+    (server, link)
+}
+
+/// The small database's server behind a 2 Mbit/s, 10 ms link, and the
+/// session configuration that reaches it through the link.
+fn behind_a_2mbit_link(
+    rt: &tokio::runtime::Runtime,
+) -> (LocalServer, Link, planet_session::net::SessionConfig) {
+    let (server, link) = served_through(rt, "2mbit,10ms");
     let cfg = server.session_config(link.local_addr()).expect("config");
     (server, link, cfg)
 }
