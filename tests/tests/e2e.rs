@@ -337,10 +337,13 @@ fn requests_are_answered_in_the_order_they_are_made() {
 
 /// A request made after others with a higher priority (a `Priority` frame,
 /// docs/PROTOCOL.md §4.10) overtakes the answers still waiting in the
-/// server's send buffer; with the same priority it comes after all of
-/// them. Over a 2 Mbit/s link, 40 copies of the largest record take about
-/// a third of a second; the last request is made once the first answer is
-/// in, and returns the number of earlier answers that came after it.
+/// server's send buffer; with the same priority it comes after them, or
+/// nearly. Over a 2 Mbit/s link, 60 copies of the largest record take about
+/// half a second; the last request is made once 10 answers are in, so
+/// that every earlier request has long reached the server (a request
+/// arriving with others is written in the order its task runs, not in
+/// stream order), and returns the number of earlier answers that came
+/// after it.
 #[test]
 fn a_higher_priority_overtakes_answers_still_buffered() {
     use planet_core::format::DbFile;
@@ -356,13 +359,15 @@ fn a_higher_priority_overtakes_answers_still_buffered() {
         .max_by_key(|r| r.size)
         .copied()
         .expect("a root");
+    // Within the server's default in-flight limit (64).
+    const LOW: u64 = 60;
     let overtaken = |last: i32| {
         let cfg = cfg.clone();
         rt.block_on(async move {
             let conn = connect_session(cfg).await;
             let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
             let low = Some(StreamPriority { priority: -1 });
-            for id in 1..=40u64 {
+            for id in 1..=LOW {
                 let f = conn.fetch_as(id, r.offset, r.size, RequestKind::Record, low);
                 let tx = tx.clone();
                 tokio::spawn(async move {
@@ -370,18 +375,19 @@ fn a_higher_priority_overtakes_answers_still_buffered() {
                     let _ = tx.send(id);
                 });
             }
-            let first = rx.recv().await.expect("an answer");
-            assert!(first != 100);
+            let mut order = Vec::new();
+            while order.len() < 10 {
+                order.push(rx.recv().await.expect("an answer"));
+            }
             let last = Some(StreamPriority { priority: last });
             let f = conn.fetch_as(100, r.offset, r.size, RequestKind::Record, last);
             tokio::spawn(async move {
                 f.await.expect("record");
                 let _ = tx.send(100);
             });
-            let mut order = vec![first];
             while let Some(id) = rx.recv().await {
                 order.push(id);
-                if order.len() == 41 {
+                if order.len() as u64 == LOW + 1 {
                     break;
                 }
             }
@@ -391,14 +397,17 @@ fn a_higher_priority_overtakes_answers_still_buffered() {
             order.len() - 1 - at
         })
     };
-    // (The last few answers finish within a millisecond of each other, and
-    // the tasks that see them may report them out of order.)
+    // At equal priority the last request is usually answered last (0 after
+    // it on a quiet machine). On a loaded one the server's request tasks
+    // may write earlier answers late, after it (up to 12 seen with three
+    // test binaries on two cores), so the equal run is the control, not a
+    // bound: the priority must add at least 10 overtaken answers to it.
     let same = overtaken(-1);
     let higher = overtaken(1);
     eprintln!("answers after the last request: {same} at equal priority, {higher} at a higher one");
+    assert!(higher >= 20, "{higher} earlier answers came after it");
     assert!(
-        same <= 2,
-        "equal priorities go in the order of the requests: {same}"
+        higher >= same + 10,
+        "{higher} at a higher priority against {same} at an equal one"
     );
-    assert!(higher >= 10, "{higher} earlier answers came after it");
 }
