@@ -119,6 +119,29 @@ async fn open(h: &planet_server::ServerHandle) -> (Connection, u64, Header) {
     (conn, welcome.file_size, header)
 }
 
+/// A three-level server configured by `tweak`, and a connection to it:
+/// the server's directory (bind it for the server's life), the handle, the
+/// connection, the file size and the header.
+async fn served_with(
+    tweak: impl FnOnce(&mut ServerConfig),
+) -> (
+    tempfile::TempDir,
+    planet_server::ServerHandle,
+    Connection,
+    u64,
+    Header,
+) {
+    let dir = tempfile::tempdir().unwrap();
+    let h = three_level_server_with(dir.path(), false, tweak).await;
+    let (conn, file_size, header) = open(&h).await;
+    (dir, h, conn, file_size, header)
+}
+
+/// A `LodRefsAboveRequest` at floors of 0 m: every child table.
+fn every_table_above() -> RequestKind {
+    RequestKind::RecordAndRefsAbove(ErrorFloors::new([0.0; 4]).unwrap())
+}
+
 fn server_code(r: Result<Vec<u8>, NetError>) -> ErrorCode {
     match r {
         Err(NetError::Server(e)) => e.code,
@@ -269,12 +292,9 @@ async fn tables_under_their_floors_are_left_out() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn refused_floors_fall_back_to_plain_requests() {
     for priority in [None, Some(StreamPriority { priority: 1 })] {
-        let dir = tempfile::tempdir().unwrap();
-        let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
-        let (conn, _, header) = open(&h).await;
+        let (_dir, h, conn, _, header) = served_with(|cfg| cfg.child_tables = false).await;
         let root = header.elevation.root_records[0];
-        let floors = ErrorFloors::new([0.0; 4]).unwrap();
-        let kind = RequestKind::RecordAndRefsAbove(floors);
+        let kind = every_table_above();
         let got = conn
             .fetch_as(10, root.offset, root.size, kind, priority)
             .await
@@ -310,10 +330,7 @@ async fn refused_floors_fall_back_to_plain_requests() {
 async fn a_priority_frame_is_answered_or_dropped_where_refused() {
     let p = Some(StreamPriority { priority: 7 });
     for priorities in [true, false] {
-        let dir = tempfile::tempdir().unwrap();
-        let h = three_level_server_with(dir.path(), false, |cfg| cfg.stream_priority = priorities)
-            .await;
-        let (conn, _, header) = open(&h).await;
+        let (_dir, h, conn, _, header) = served_with(|cfg| cfg.stream_priority = priorities).await;
         let root = header.elevation.root_records[0];
         let record = conn.fetch(1, root.offset, root.size).await.unwrap();
         let got = conn
@@ -322,10 +339,8 @@ async fn a_priority_frame_is_answered_or_dropped_where_refused() {
             .unwrap();
         assert_eq!(got, record);
         // With child tables: the refs request keeps its kind either way.
-        let floors = ErrorFloors::new([0.0; 4]).unwrap();
-        let refs = RequestKind::RecordAndRefsAbove(floors);
         let got = conn
-            .fetch_as(3, root.offset, root.size, refs, p)
+            .fetch_as(3, root.offset, root.size, every_table_above(), p)
             .await
             .unwrap();
         assert!(got.len() > record.len() && got.starts_with(&record));
@@ -366,9 +381,7 @@ async fn tables_of(conn: &Connection, file_size: u64, r: &ChildRef) -> Vec<Child
 /// again with `LodRequest`, every request in flight and every later one.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_server_without_child_tables_gets_plain_requests() {
-    let dir = tempfile::tempdir().unwrap();
-    let h = three_level_server_with(dir.path(), false, |cfg| cfg.child_tables = false).await;
-    let (conn, _, header) = open(&h).await;
+    let (_dir, h, conn, _, header) = served_with(|cfg| cfg.child_tables = false).await;
     let roots = header.elevation.root_records;
     assert!(!conn.child_tables_refused());
     // Six refs requests in flight when the first refusal comes back.
@@ -403,13 +416,11 @@ async fn a_server_without_child_tables_gets_plain_requests() {
 /// long as their records fit, not their reservations.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_unused_trailer_is_refunded_to_the_bandwidth_bucket() {
-    let dir = tempfile::tempdir().unwrap();
-    let h = three_level_server_with(dir.path(), false, |cfg| {
+    let (_dir, h, conn, file_size, header) = served_with(|cfg| {
         cfg.max_rate_wait = Duration::ZERO;
         cfg.tenants[0].max_bytes_per_second = 2 * u64::from(MAX_REFS_TRAILER_LEN);
     })
     .await;
-    let (conn, file_size, header) = open(&h).await;
     // A grandchild: a leaf, whose trailer is empty.
     let root = header.elevation.root_records[0];
     let child = conn.fetch(1, root.offset, root.size).await;
